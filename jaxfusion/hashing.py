@@ -1,0 +1,171 @@
+"""Spatial hash of int32×3 voxel keys: bounded linear probing, parallel insert and lookup.
+
+The table is a dense `(C, 3) int32` array, C a power of two; an unused slot holds EMPTY in all
+three columns. A whole frame's keys are inserted in one vectorised `lax.while_loop`: in round r
+every pending key looks at slot `(hash + r) mod C`; keys that find themselves are done, keys
+that find an empty slot try to claim it, and one claimant per slot wins (the others probe on).
+Keys still pending after `max_probes` rounds are reported as not found, so the caller can count
+them as dropped — stored keys are never overwritten. There is no deletion, which keeps the
+linear-probing invariant: a stored key sits before the first empty slot of its probe sequence.
+
+Shape legend: C slots, N keys.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Sentinel stored in every column of an unused slot. Valid keys are bounded by camera.KEY_LIMIT,
+# so no key can ever equal it.
+EMPTY = np.int32(np.iinfo(np.int32).min)
+
+_PRIME_X = np.uint32(0x9E3779B1)
+_PRIME_Y = np.uint32(0x85EBCA77)
+_PRIME_Z = np.uint32(0xC2B2AE3D)
+
+
+def _fmix32(h: jax.Array) -> jax.Array:
+  """MurmurHash3's 32-bit finaliser: every input bit affects every output bit."""
+  h = h ^ (h >> 16)
+  h = h * np.uint32(0x85EBCA6B)
+  h = h ^ (h >> 13)
+  h = h * np.uint32(0xC2B2AE35)
+  return h ^ (h >> 16)
+
+
+def hash_keys(keys: jax.Array) -> jax.Array:
+  """Hashes `(N, 3) int32` keys to `(N,) uint32`."""
+  k = jax.lax.bitcast_convert_type(jnp.asarray(keys, jnp.int32), jnp.uint32)
+  return _fmix32(k[:, 0] * _PRIME_X ^ k[:, 1] * _PRIME_Y ^ k[:, 2] * _PRIME_Z)
+
+
+def empty_table(capacity: int) -> jax.Array:
+  """A `(C, 3) int32` table with every slot EMPTY."""
+  return jnp.full((capacity, 3), EMPTY, jnp.int32)
+
+
+def _home_slots(keys: jax.Array, capacity: int) -> jax.Array:
+  return (hash_keys(keys) & np.uint32(capacity - 1)).astype(jnp.int32)
+
+
+class InsertResult(NamedTuple):
+  """Output of `insert`."""
+  table: jax.Array    # [C, 3] int32, the table with the new keys placed
+  claims: jax.Array   # [C] int32, scratch (meaningless between calls)
+  slots: jax.Array    # [N] int32, slot of each key where found
+  found: jax.Array    # [N] bool, key is stored (already there or newly placed)
+  is_new: jax.Array   # [N] bool, key was placed by this call
+
+
+class _InsertCarry(NamedTuple):
+  table: jax.Array     # [C, 3] int32
+  claims: jax.Array    # [C] int32
+  slots: jax.Array     # [N] int32
+  pending: jax.Array   # [N] bool
+  is_new: jax.Array    # [N] bool
+  probe: jax.Array     # [] int32
+
+
+def insert(table: jax.Array, claims: jax.Array, keys: jax.Array, active: jax.Array, *,
+           max_probes: int) -> InsertResult:
+  """Finds or places every active key, in parallel.
+
+  Args:
+    table: `(C, 3) int32` hash table, C a power of two.
+    claims: `(C,) int32` scratch buffer of the same capacity (donated along with the table so
+      that claiming needs no per-call allocation of size C).
+    keys: `(N, 3) int32` keys; the active ones must be distinct.
+    active: `(N,) bool`, which keys to insert.
+    max_probes: static bound on the probe sequence length.
+
+  Returns:
+    An InsertResult. Active keys with `found == False` did not fit (table full, or no free slot
+    within `max_probes`); nothing was written for them.
+  """
+  capacity = table.shape[0]
+  num_keys = keys.shape[0]
+  home = _home_slots(keys, capacity)
+  lanes = jnp.arange(num_keys, dtype=jnp.int32)
+
+  def cond(c: _InsertCarry):
+    return (c.probe < max_probes) & jnp.any(c.pending)
+
+  def body(c: _InsertCarry) -> _InsertCarry:
+    slot = (home + c.probe) & (capacity - 1)
+    stored = c.table[slot]
+    match = c.pending & jnp.all(stored == keys, axis=-1)
+    empty = c.pending & (stored[:, 0] == EMPTY)
+    # Every lane that saw an empty slot writes its id; the id read back is the one winner.
+    claims = c.claims.at[jnp.where(empty, slot, capacity)].set(lanes, mode="drop")
+    won = empty & (claims[slot] == lanes)
+    table = c.table.at[jnp.where(won, slot, capacity)].set(keys, mode="drop")
+    done = match | won
+    return _InsertCarry(
+        table=table,
+        claims=claims,
+        slots=jnp.where(done, slot, c.slots),
+        pending=c.pending & ~done,
+        is_new=c.is_new | won,
+        probe=c.probe + 1,
+    )
+
+  init = _InsertCarry(
+      table=table,
+      claims=claims,
+      slots=jnp.zeros(num_keys, jnp.int32),
+      pending=jnp.asarray(active, bool),
+      is_new=jnp.zeros(num_keys, bool),
+      probe=jnp.zeros((), jnp.int32),
+  )
+  out = jax.lax.while_loop(cond, body, init)
+  found = jnp.asarray(active, bool) & ~out.pending
+  return InsertResult(out.table, out.claims, out.slots, found, out.is_new)
+
+
+class _LookupCarry(NamedTuple):
+  slots: jax.Array     # [N] int32
+  pending: jax.Array   # [N] bool
+  found: jax.Array     # [N] bool
+  probe: jax.Array     # [] int32
+
+
+def lookup(table: jax.Array, keys: jax.Array, *, max_probes: int) -> tuple[jax.Array, jax.Array]:
+  """Finds keys without inserting.
+
+  Args:
+    table: `(C, 3) int32` hash table.
+    keys: `(N, 3) int32` query keys.
+    max_probes: static bound, the same as used for insertion.
+
+  Returns:
+    `(slots, found)`: `(N,) int32` slot of each key (0 where absent) and `(N,) bool`.
+  """
+  capacity = table.shape[0]
+  num_keys = keys.shape[0]
+  home = _home_slots(keys, capacity)
+
+  def cond(c: _LookupCarry):
+    return (c.probe < max_probes) & jnp.any(c.pending)
+
+  def body(c: _LookupCarry) -> _LookupCarry:
+    slot = (home + c.probe) & (capacity - 1)
+    stored = table[slot]
+    match = c.pending & jnp.all(stored == keys, axis=-1)
+    empty = c.pending & (stored[:, 0] == EMPTY)
+    return _LookupCarry(
+        slots=jnp.where(match, slot, c.slots),
+        pending=c.pending & ~(match | empty),
+        found=c.found | match,
+        probe=c.probe + 1,
+    )
+
+  init = _LookupCarry(
+      slots=jnp.zeros(num_keys, jnp.int32),
+      pending=jnp.ones(num_keys, bool),
+      found=jnp.zeros(num_keys, bool),
+      probe=jnp.zeros((), jnp.int32),
+  )
+  out = jax.lax.while_loop(cond, body, init)
+  return out.slots, out.found

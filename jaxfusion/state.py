@@ -1,0 +1,139 @@
+"""The map state: a frozen pytree of fixed-capacity dense arrays, allocated once.
+
+Shape legend: C slots (capacity, a power of two), K classes.
+"""
+
+import math
+import warnings
+from typing import Any, Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxfusion import hashing
+from jaxfusion.rules import base as rules_base
+
+DEFAULT_MAX_PROBES = 64
+
+
+class MapFullWarning(UserWarning):
+  """Some voxels could not be stored because the map was full (or probing hit its bound)."""
+
+
+@struct.dataclass
+class MapState:
+  """A semantic voxel map. Donated to and returned by `fuse_frame`; never mutate it.
+
+  The per-voxel rows are owned by the rule the map was made for (`rule_name`); a slot whose
+  key is EMPTY still holds the rule's prior, so a newly inserted voxel starts from it.
+  """
+  keys: jax.Array           # [C, 3] int32 voxel coordinates, hashing.EMPTY in unused slots
+  hits: jax.Array           # [C] int32 pixels fused into each voxel (saturating)
+  rows: Any                 # rule-owned per-voxel state: dict of [C, K] float32
+  claims: jax.Array         # [C] int32 scratch for parallel insertion (no meaning between calls)
+  num_occupied: jax.Array   # [] int32 voxels stored
+  num_dropped: jax.Array    # [] int32 voxel insertions refused (map full / probe bound reached)
+  voxel_size: jax.Array     # [] float32 voxel edge in metres
+  rule_name: str = struct.field(pytree_node=False)
+  max_probes: int = struct.field(pytree_node=False)
+  posterior_fn: Callable = struct.field(pytree_node=False)
+  confidence_fn: Optional[Callable] = struct.field(pytree_node=False)
+
+  @property
+  def capacity(self) -> int:
+    return self.keys.shape[-2]
+
+  @property
+  def num_classes(self) -> int:
+    return jax.tree.leaves(self.rows)[0].shape[-1]
+
+
+def _check_positive_int(value, name):
+  if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+    raise ValueError(f"{name} must be a positive integer; got {value!r}")
+  return int(value)
+
+
+def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
+             rule: rules_base.FusionRule, max_probes: int = DEFAULT_MAX_PROBES) -> MapState:
+  """Allocates an empty map at full capacity.
+
+  Args:
+    capacity: number of slots C; rounded up to a power of two (with a warning) if it is not one.
+      Keep the fill below ~70 % for short probes.
+    num_classes: K ≥ 2.
+    voxel_size: voxel edge in metres (> 0).
+    rule: the FusionRule this map will be fused with; it owns the per-voxel rows.
+    max_probes: bound on the linear-probing sequence; keys that find no slot within it are
+      dropped and counted.
+
+  Returns:
+    A MapState with every slot empty and every row at the rule's prior.
+  """
+  capacity = _check_positive_int(capacity, "capacity")
+  num_classes = _check_positive_int(num_classes, "num_classes")
+  max_probes = _check_positive_int(max_probes, "max_probes")
+  if num_classes < 2:
+    raise ValueError(f"num_classes must be at least 2; got {num_classes}")
+  if not isinstance(rule, rules_base.FusionRule):
+    raise TypeError(f"rule must be a jaxfusion.rules.FusionRule; got {type(rule).__name__}")
+  if capacity & (capacity - 1):
+    rounded = 1 << math.ceil(math.log2(capacity))
+    warnings.warn(f"capacity {capacity} is not a power of two; rounded up to {rounded}",
+                  stacklevel=2)
+    capacity = rounded
+  if capacity > 2**30:
+    raise ValueError(f"capacity must be at most 2**30; got {capacity}")
+  if rules_base.is_concrete(voxel_size):
+    size = float(np.asarray(voxel_size))
+    if not (math.isfinite(size) and size > 0):
+      raise ValueError(f"voxel_size must be a positive finite number of metres; got {size}")
+  row = rule.init(num_classes, rule.hparams)
+  rows = jax.tree.map(lambda x: jnp.tile(jnp.asarray(x, jnp.float32)[None], (capacity, 1)), row)
+  return MapState(
+      keys=hashing.empty_table(capacity),
+      hits=jnp.zeros(capacity, jnp.int32),
+      rows=rows,
+      claims=jnp.zeros(capacity, jnp.int32),
+      num_occupied=jnp.zeros((), jnp.int32),
+      num_dropped=jnp.zeros((), jnp.int32),
+      voxel_size=jnp.asarray(voxel_size, jnp.float32),
+      rule_name=rule.name,
+      max_probes=max_probes,
+      posterior_fn=rule.posterior,
+      confidence_fn=rule.confidence,
+  )
+
+
+def warn_if_dropped(num_dropped: int, capacity: int) -> None:
+  if num_dropped > 0:
+    warnings.warn(
+        f"the map is full: {num_dropped} voxel insertions were dropped (capacity {capacity}); "
+        "make a map with a larger capacity", MapFullWarning, stacklevel=3)
+
+
+def map_stats(state: MapState) -> dict:
+  """Host-side summary of a (single, unbatched) map; warns with MapFullWarning if it overflowed.
+
+  Returns:
+    dict with `capacity`, `num_classes`, `occupied`, `load_factor`, `dropped`, `voxel_size`,
+    `rule`, `max_probes`.
+  """
+  if state.keys.ndim != 2:
+    raise ValueError("map_stats expects one map; index a batched map first, e.g. "
+                     "jax.tree.map(lambda x: x[i], state)")
+  occupied = int(state.num_occupied)
+  dropped = int(state.num_dropped)
+  warn_if_dropped(dropped, state.capacity)
+  return {
+      "capacity": state.capacity,
+      "num_classes": state.num_classes,
+      "occupied": occupied,
+      "load_factor": occupied / state.capacity,
+      "dropped": dropped,
+      "voxel_size": float(state.voxel_size),
+      "rule": state.rule_name,
+      "max_probes": state.max_probes,
+  }

@@ -1,0 +1,108 @@
+"""Input checks for the public entry points, raising ValueError/TypeError with clear messages.
+
+Shape and dtype checks run at trace time, so they also guard calls made under `jit`, `vmap` or
+`grad`. Value checks (finite rigid pose, positive intrinsics, non-negative probabilities) need
+concrete data and run only when the inputs are not tracers.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfusion.camera import Camera
+from jaxfusion.rules import base as rules_base
+
+_RIGID_TOL = 1e-3
+
+
+def _is_concrete(*xs) -> bool:
+  return all(not isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _dtype(x):
+  return np.asarray(x).dtype if not hasattr(x, "dtype") else x.dtype
+
+
+def _check_float(x, name, hint=""):
+  dtype = _dtype(x)
+  if not jnp.issubdtype(dtype, jnp.floating):
+    raise TypeError(f"{name} must be a float array; got dtype {dtype}{hint}")
+
+
+def check_camera(camera) -> None:
+  if not isinstance(camera, Camera):
+    raise TypeError(f"camera must be a jaxfusion.Camera(fx, fy, cx, cy); got "
+                    f"{type(camera).__name__}")
+  for name in ("fx", "fy", "cx", "cy"):
+    value = getattr(camera, name)
+    if np.ndim(value) != 0:
+      raise ValueError(f"camera.{name} must be a scalar; got shape {np.shape(value)}")
+    if _is_concrete(value):
+      v = float(np.asarray(value))
+      if not math.isfinite(v):
+        raise ValueError(f"camera.{name} must be finite; got {v}")
+      if name in ("fx", "fy") and v <= 0:
+        raise ValueError(f"camera.{name} (focal length in pixels) must be positive; got {v}")
+
+
+def check_pose_values(T: np.ndarray, name: str = "T_world_cam") -> None:
+  """Raises unless every `(..., 4, 4)` pose is finite and rigid (rotation + translation)."""
+  T = np.asarray(T, np.float64)
+  if not np.all(np.isfinite(T)):
+    raise ValueError(f"{name} must be finite; got a pose with NaN/inf entries")
+  R = T[..., :3, :3]
+  should_be_identity = np.einsum("...ji,...jk->...ik", R, R)
+  if np.max(np.abs(should_be_identity - np.eye(3)), initial=0.0) > _RIGID_TOL:
+    raise ValueError(f"{name} is not rigid: its 3x3 rotation block is not orthonormal")
+  if np.any(np.linalg.det(R) <= 0):
+    raise ValueError(f"{name} is not rigid: its rotation block has a negative determinant")
+  if np.max(np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])), initial=0.0) > _RIGID_TOL:
+    raise ValueError(f"{name} must have last row [0, 0, 0, 1]")
+
+
+def check_frame(frame, *, num_classes: int, requires_var: bool, rule_name: str,
+                batch_dims: int = 0) -> None:
+  """Checks one Frame (`batch_dims=0`) or a stack of frames (`batch_dims=1`)."""
+  lead = "(T, " if batch_dims else "("
+  depth, T, probs, var = frame.depth, frame.T_world_cam, frame.probs, frame.var
+  if np.ndim(depth) != 2 + batch_dims:
+    raise ValueError(f"depth must have shape {lead}H, W); got shape {np.shape(depth)}")
+  _check_float(depth, "depth", " (convert integer depth images to metres, e.g. mm / 1000)")
+  if np.shape(T)[batch_dims:] != (4, 4) or np.ndim(T) != 2 + batch_dims:
+    raise ValueError(f"T_world_cam must have shape {lead}4, 4); got shape {np.shape(T)}")
+  _check_float(T, "T_world_cam")
+  if np.ndim(probs) != 3 + batch_dims:
+    raise ValueError(f"probs must have shape {lead}H, W, K); got shape {np.shape(probs)}")
+  _check_float(probs, "probs")
+  if np.shape(probs)[:-1] != np.shape(depth):
+    raise ValueError(f"probs {np.shape(probs)} and depth {np.shape(depth)} must cover the same "
+                     "pixels")
+  if np.shape(probs)[-1] != num_classes:
+    raise ValueError(f"K mismatch: the map has {num_classes} classes but probs has "
+                     f"{np.shape(probs)[-1]}")
+  if var is not None:
+    if np.shape(var) != np.shape(probs):
+      raise ValueError(f"var must have the shape of probs {np.shape(probs)}; got "
+                       f"{np.shape(var)}")
+    _check_float(var, "var")
+  elif requires_var:
+    raise ValueError(f"rule {rule_name!r} weights observations by their epistemic variance: "
+                     "pass Frame(..., var=...) (e.g. from jaxfusion.mc_moments(samples))")
+  if batch_dims == 0 and np.shape(depth)[0] * np.shape(depth)[1] == 0:
+    raise ValueError(f"depth must have at least one pixel; got shape {np.shape(depth)}")
+  if _is_concrete(T):
+    check_pose_values(T)
+  if _is_concrete(probs) and bool(np.any(np.asarray(probs) < 0)):
+    raise ValueError("probs must be non-negative class probabilities; got negative values")
+  if var is not None and _is_concrete(var) and bool(np.any(np.asarray(var) < -1e-6)):
+    raise ValueError("var must be non-negative; got negative variances")
+
+
+def check_rule_matches_map(state, rule) -> None:
+  if not isinstance(rule, rules_base.FusionRule):
+    raise TypeError(f"rule must be a jaxfusion.rules.FusionRule; got {type(rule).__name__}")
+  if rule.name != state.rule_name:
+    raise ValueError(f"this map was made for rule {state.rule_name!r} but is being fused with "
+                     f"{rule.name!r}; make the map with init_map(..., rule=rule)")
