@@ -1,0 +1,99 @@
+"""A slow, obvious NumPy reference of SPEC.md: a dict keyed by voxel coordinates, float64,
+plain Python loops over pixels and voxels. Written from the spec, not from the engine."""
+
+import math
+from collections import defaultdict
+
+import numpy as np
+
+TINY = float(np.finfo(np.float32).tiny)   # SPEC: log(max(p, tiny))
+
+
+def pixel_points(depth, T_world_cam, fx, fy, cx, cy):
+  """Yields ((v, u), world point) of every valid pixel, in float64."""
+  T = np.asarray(T_world_cam, np.float64)
+  H, W = depth.shape
+  for v in range(H):
+    for u in range(W):
+      d = float(depth[v, u])
+      if not math.isfinite(d) or d <= 0:
+        continue
+      p_cam = np.array([d * (u - cx) / fx, d * (v - cy) / fy, d])
+      yield (v, u), T[:3, :3] @ p_cam + T[:3, 3]
+
+
+class ReferenceMap:
+  """One map under one rule, by SPEC.md. `rule` is one of the six paper names."""
+
+  def __init__(self, rule, num_classes, voxel_size, *, beta=0.3, eps=1e-12,
+               alpha0=-math.log(1e-3), aggregate="sum"):
+    self.rule, self.K, self.voxel_size = rule, num_classes, voxel_size
+    self.beta, self.eps, self.alpha0, self.aggregate = beta, eps, alpha0, aggregate
+    self.voxels = {}
+
+  def _new_voxel(self):
+    K = self.K
+    return {"score": np.zeros(K), "logp": np.full(K, -math.log(K)),
+            "alpha_bar": np.full(K, self.alpha0), "hits": 0}
+
+  def fuse(self, depth, T_world_cam, probs, var, fx, fy, cx, cy):
+    groups = defaultdict(list)
+    for (v, u), p_world in pixel_points(depth, T_world_cam, fx, fy, cx, cy):
+      p = np.asarray(probs[v, u], np.float64)
+      s = np.zeros(self.K) if var is None else np.asarray(var[v, u], np.float64)
+      if not (np.all(np.isfinite(p)) and np.all(np.isfinite(s))):
+        continue
+      key = tuple(int(k) for k in np.floor(p_world / self.voxel_size))
+      groups[key].append((p, s))
+    for key, pixels in groups.items():
+      voxel = self.voxels.setdefault(key, self._new_voxel())
+      self._update(voxel, pixels)
+      voxel["hits"] += len(pixels)
+
+  def _reduce(self, values):
+    total = np.sum(values, axis=0)
+    return total / len(values) if self.aggregate == "mean" else total
+
+  def _update(self, voxel, pixels):
+    K, rule = self.K, self.rule
+    if rule == "sum_probs":
+      voxel["score"] += self._reduce([p for p, _ in pixels])
+      return
+    if rule == "sum_labels":
+      voxel["score"] += self._reduce([np.eye(K)[int(np.argmax(p))] for p, _ in pixels])
+      return
+    if rule in ("robust_r", "robust_dr"):
+      pixels = [((1 - self.beta) * p + self.beta / K, s) for p, s in pixels]
+    logs = [np.log(np.maximum(p, TINY)) for p, _ in pixels]
+    if rule in ("bayes", "robust_r"):
+      logp = voxel["logp"] + self._reduce(logs)
+    else:  # robust_d, robust_dr
+      alphas = [-np.log(np.clip(s, 0.0, 0.25) + self.eps) for _, s in pixels]
+      prev = voxel["alpha_bar"]
+      new = np.maximum(prev, np.max(alphas, axis=0))
+      weighted = self._reduce([a * l for a, l in zip(alphas, logs)])
+      logp = prev / new * voxel["logp"] + weighted / new
+      voxel["alpha_bar"] = new
+    voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
+
+  def read(self):
+    """Same layout as jaxfusion.read_map, sorted by coordinates."""
+    keys = sorted(self.voxels)
+    out = {"coords": np.array(keys, np.int64).reshape(-1, 3), "posterior": [], "hits": [],
+           "confidence": []}
+    for key in keys:
+      voxel = self.voxels[key]
+      if self.rule in ("sum_probs", "sum_labels"):
+        total = voxel["score"].sum()
+        post = voxel["score"] / total if total > 0 else np.full(self.K, 1.0 / self.K)
+      else:
+        post = np.exp(voxel["logp"])
+        post = post / post.sum()
+      out["posterior"].append(post)
+      out["hits"].append(voxel["hits"])
+      out["confidence"].append(voxel["alpha_bar"])
+    out["posterior"] = np.array(out["posterior"]).reshape(-1, self.K)
+    out["hits"] = np.array(out["hits"], np.int64)
+    out["confidence"] = np.array(out["confidence"]).reshape(-1, self.K)
+    out["labels"] = np.argmax(out["posterior"], axis=1) if keys else np.zeros(0, int)
+    return out
