@@ -1,0 +1,43 @@
+"""jaxfusion_models: the Bayesian segmentation front end (MC-dropout DeepLab-v3-style net).
+
+Installed as `jaxfusion_models` (the repo folder is `models/`). Depends on `jaxfusion`; the
+engine never imports it.
+
+    model = jaxfusion_models.load_pretrained()          # shipped weights, class list checked
+    samples = jaxfusion_models.mc_samples(model.graphdef, model.params, key, rgb, num_samples=32)
+    mean, var = jaxfusion.mc_moments(samples)           # (H, W, K) each
+    source = jaxfusion_models.mc_dropout_source(model.graphdef, model.params, num_samples=32)
+
+Commands: `python -m models.train`, `python -m models.evaluate`, `python -m models.figure`.
+"""
+
+from .checkpoint import CheckpointError
+from .checkpoint import LoadedModel
+from .checkpoint import PRETRAINED_PATH
+from .checkpoint import load
+from .checkpoint import load_pretrained
+from .checkpoint import save
+from .net import DEFAULT_CLASS_NAMES
+from .net import SegNet
+from .net import SegNetConfig
+from .net import apply
+from .net import count_params
+from .net import init
+from .net import tiny_config
+from .sampling import deterministic_apply_fn
+from .sampling import deterministic_probs
+from .sampling import deterministic_source
+from .sampling import ensemble_source
+from .sampling import mc_dropout_source
+from .sampling import mc_samples
+from .sampling import mc_samples_batch
+from .sampling import prepare_images
+from .sampling import stochastic_apply_fn
+
+__all__ = sorted([
+    "CheckpointError", "DEFAULT_CLASS_NAMES", "LoadedModel", "PRETRAINED_PATH", "SegNet",
+    "SegNetConfig", "apply", "count_params", "deterministic_apply_fn", "deterministic_probs",
+    "deterministic_source", "ensemble_source", "init", "load", "load_pretrained",
+    "mc_dropout_source", "mc_samples", "mc_samples_batch", "prepare_images", "save",
+    "stochastic_apply_fn", "tiny_config",
+])

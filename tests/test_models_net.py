@@ -1,0 +1,146 @@
+"""The segmentation net and its MC-dropout sampling: shapes, keys, determinism, bad input."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfusion
+from models import net, sampling
+
+H, W, K = 16, 16, 7
+M = 4  # One M for all tests: each distinct M is a separate compilation.
+
+
+@pytest.fixture(scope="module")
+def tiny():
+  graphdef, params = net.init(net.tiny_config(K), key=jax.random.key(0))
+  return graphdef, params
+
+
+@pytest.fixture(scope="module")
+def image():
+  return np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8)
+
+
+def test_config_round_trips_through_json_dict():
+  config = net.SegNetConfig(widths=(16, 32), strides=(2, 2), dilations=(1, 2), stem_width=16,
+                            aspp_width=16)
+  assert net.SegNetConfig.from_dict(config.to_dict()) == config
+  assert config.output_stride == 8
+
+
+@pytest.mark.parametrize("bad", [
+    dict(widths=(8, 16), strides=(1,), dilations=(1, 2)),
+    dict(dropout_rate=1.0),
+    dict(num_classes=1),
+    dict(norm_groups=5),
+])
+def test_config_rejects_inconsistent_architectures(bad):
+  with pytest.raises(ValueError):
+    net.SegNetConfig(**bad)
+
+
+def test_params_are_the_only_state_and_count_is_positive(tiny):
+  _, params = tiny
+  leaves = jax.tree_util.tree_leaves(params)
+  assert all(leaf.dtype == jnp.float32 for leaf in leaves)
+  assert 0 < net.count_params(params) < 50_000
+
+
+def test_logits_have_input_size_for_any_resolution(tiny):
+  graphdef, params = tiny
+  for h, w in [(H, W), (20, 28)]:
+    probs = sampling.deterministic_probs(graphdef, params, jnp.zeros((2, h, w, 3)))
+    assert probs.shape == (2, h, w, K) and probs.dtype == jnp.float32
+
+
+def test_mc_samples_shapes_and_simplex(tiny, image):
+  graphdef, params = tiny
+  samples = sampling.mc_samples(graphdef, params, jax.random.key(1), image, num_samples=M)
+  assert samples.shape == (M, H, W, K) and samples.dtype == jnp.float32
+  np.testing.assert_allclose(np.asarray(samples).sum(-1), 1.0, atol=1e-5)
+  mean, var = jaxfusion.mc_moments(samples)
+  assert mean.shape == var.shape == (H, W, K)
+  assert float(var.max()) > 0.0
+
+
+def test_same_key_same_samples_and_different_keys_differ(tiny, image):
+  graphdef, params = tiny
+  a = sampling.mc_samples(graphdef, params, jax.random.key(1), image, num_samples=4)
+  b = sampling.mc_samples(graphdef, params, jax.random.key(1), image, num_samples=4)
+  c = sampling.mc_samples(graphdef, params, jax.random.key(2), image, num_samples=4)
+  np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  assert float(jnp.abs(a - c).max()) > 1e-4
+  # The M samples of one call differ from each other too (independent dropout masks).
+  assert float(jnp.abs(a[0] - a[1]).max()) > 1e-4
+
+
+def test_dropout_off_is_identical_for_every_key(tiny, image):
+  graphdef, params = tiny
+  apply_fn = sampling.deterministic_apply_fn(graphdef)
+  a = apply_fn(params, jax.random.key(1), image)
+  b = apply_fn(params, jax.random.key(2), image)
+  np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  np.testing.assert_allclose(np.asarray(sampling.deterministic_probs(graphdef, params, image)),
+                             np.asarray(a), atol=1e-6)
+
+
+def test_zero_dropout_rate_makes_mc_samples_identical(image):
+  config = dataclasses.replace(net.tiny_config(K), dropout_rate=0.0)
+  graphdef, params = net.init(config, key=jax.random.key(0))
+  samples = sampling.mc_samples(graphdef, params, jax.random.key(3), image, num_samples=M)
+  np.testing.assert_array_equal(np.asarray(samples[0]), np.asarray(samples[1]))
+
+
+def test_vmap_over_keys_equals_a_loop_over_keys(tiny, image):
+  graphdef, params = tiny
+  m = M
+  key = jax.random.key(5)
+  vmapped = sampling.mc_samples(graphdef, params, key, image, num_samples=m)
+  apply_fn = sampling.stochastic_apply_fn(graphdef)
+  looped = np.stack([np.asarray(apply_fn(params, k, image)) for k in jax.random.split(key, m)])
+  np.testing.assert_allclose(np.asarray(vmapped), looped, atol=1e-5)
+
+
+def test_batch_over_frames_matches_single_frames(tiny, image):
+  graphdef, params = tiny
+  images = np.stack([image, image[::-1]])
+  key = jax.random.key(7)
+  batch = sampling.mc_samples_batch(graphdef, params, key, images, num_samples=M)
+  assert batch.shape == (2, M, H, W, K)
+  for b, k in enumerate(jax.random.split(key, 2)):
+    single = sampling.mc_samples(graphdef, params, k, images[b], num_samples=M)
+    np.testing.assert_allclose(np.asarray(batch[b]), np.asarray(single), atol=1e-5)
+  det = sampling.deterministic_probs(graphdef, params, images)
+  assert det.shape == (2, H, W, K)
+
+
+def test_uint8_and_float_inputs_agree(tiny, image):
+  graphdef, params = tiny
+  a = sampling.deterministic_probs(graphdef, params, image)
+  b = sampling.deterministic_probs(graphdef, params, image.astype(np.float32) / 255.0)
+  np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
+
+
+@pytest.mark.parametrize("bad, error, match", [
+    (np.zeros((H, W), np.uint8), ValueError, "RGB image"),
+    (np.zeros((H, W, 4), np.uint8), ValueError, "3 colour channels"),
+    (np.zeros((3, H, W), np.uint8), ValueError, "channels-first"),
+    (np.zeros((H, W, 3), np.int32), TypeError, "uint8"),
+    (np.zeros((H, W, 3), bool), TypeError, "uint8"),
+])
+def test_bad_images_raise_clear_errors(tiny, bad, error, match):
+  graphdef, params = tiny
+  with pytest.raises(error, match=match):
+    sampling.mc_samples(graphdef, params, jax.random.key(0), bad, num_samples=M)
+
+
+def test_mc_samples_rejects_batches_and_bad_m(tiny, image):
+  graphdef, params = tiny
+  with pytest.raises(ValueError, match="mc_samples_batch"):
+    sampling.mc_samples(graphdef, params, jax.random.key(0), image[None], num_samples=M)
+  with pytest.raises(ValueError, match="num_samples"):
+    sampling.mc_samples(graphdef, params, jax.random.key(0), image, num_samples=0)
