@@ -1,0 +1,116 @@
+"""Class names, colour tables and the NYU40 → 12-class mapping used by the paper.
+
+Two label sets are used:
+
+* The synthetic world (the paper's AirSim "Office"/"House" scenes): 7 classes,
+  `CLASS_NAMES`, with the paper's colours `CLASS_COLORS`.
+* ScanNet (the paper's real sequences): 12 classes, `SCANNET_CLASS_NAMES`, with
+  `SCANNET_COLORS`. ScanNet's `label-filt/*.png` hold NYU40 ids; `NYU40_TO_SCANNET12`
+  maps them. NYU40 ids with no counterpart among the 12 classes — `wall` (1), which the
+  paper's table leaves out, and `0` (unannotated) — become `IGNORE_LABEL`.
+
+`IGNORE_LABEL = -1` marks pixels that carry no ground truth: they are never fused into GT
+voxel labels and should be excluded from metrics.
+"""
+
+import numpy as np
+
+IGNORE_LABEL = -1
+
+CLASS_NAMES = ("background", "bottle", "chair", "table", "plant", "sofa", "tv")
+BACKGROUND, BOTTLE, CHAIR, TABLE, PLANT, SOFA, TV = range(7)
+
+
+def _hex_table(hex_colors) -> np.ndarray:
+  """`(K, 3) uint8` RGB table from `"RRGGBB"` strings."""
+  return np.array([[int(h[i:i + 2], 16) for i in (0, 2, 4)] for h in hex_colors], np.uint8)
+
+
+CLASS_COLORS = _hex_table(("343434", "604BA4", "FE0000", "F56B00", "009901", "34FF34", "00009B"))
+
+SCANNET_CLASS_NAMES = ("bed", "ceiling", "chair", "floor", "furniture", "objects", "picture",
+                       "sofa", "table", "tv", "door", "window")
+SCANNET_COLORS = _hex_table(("FFBB78", "4E47B7", "BCBD22", "98DF8A", "8C9965", "FF7F0E",
+                             "A1AB1B", "BEE140", "CEBE3B", "73B0C3", "996C06", "F7B6D2"))
+
+# NYU40 id → (NYU40 name, 12-class name or None for IGNORE_LABEL). The grouping follows the
+# standard NYU-v2 40 → 13 table (Couprie et al., used by SemanticFusion), adapted to the paper's
+# 12 classes: `door` is its own class, `books` joins `objects`, and `wall` is ignored.
+NYU40_TABLE = (
+    (0, "unannotated", None),
+    (1, "wall", None),
+    (2, "floor", "floor"),
+    (3, "cabinet", "furniture"),
+    (4, "bed", "bed"),
+    (5, "chair", "chair"),
+    (6, "sofa", "sofa"),
+    (7, "table", "table"),
+    (8, "door", "door"),
+    (9, "window", "window"),
+    (10, "bookshelf", "furniture"),
+    (11, "picture", "picture"),
+    (12, "counter", "furniture"),
+    (13, "blinds", "window"),
+    (14, "desk", "table"),
+    (15, "shelves", "furniture"),
+    (16, "curtain", "window"),
+    (17, "dresser", "furniture"),
+    (18, "pillow", "objects"),
+    (19, "mirror", "objects"),
+    (20, "floor mat", "floor"),
+    (21, "clothes", "objects"),
+    (22, "ceiling", "ceiling"),
+    (23, "books", "objects"),
+    (24, "refrigerator", "furniture"),
+    (25, "television", "tv"),
+    (26, "paper", "objects"),
+    (27, "towel", "objects"),
+    (28, "shower curtain", "objects"),
+    (29, "box", "objects"),
+    (30, "whiteboard", "objects"),
+    (31, "person", "objects"),
+    (32, "night stand", "furniture"),
+    (33, "toilet", "objects"),
+    (34, "sink", "objects"),
+    (35, "lamp", "objects"),
+    (36, "bathtub", "objects"),
+    (37, "bag", "objects"),
+    (38, "otherstructure", "objects"),
+    (39, "otherfurniture", "furniture"),
+    (40, "otherprop", "objects"),
+)
+
+
+def nyu40_to_scannet12_lut() -> np.ndarray:
+  """Lookup table from NYU40 ids to 12-class indices.
+
+  Returns:
+    `(256,) int32`: entry `i` is the index into `SCANNET_CLASS_NAMES` of NYU40 id `i`, or
+    `IGNORE_LABEL` for ids without a class (0, 1 = wall, and anything above 40).
+  """
+  lut = np.full((256,), IGNORE_LABEL, np.int32)
+  for nyu_id, _, name in NYU40_TABLE:
+    if name is not None:
+      lut[nyu_id] = SCANNET_CLASS_NAMES.index(name)
+  return lut
+
+
+NYU40_TO_SCANNET12 = nyu40_to_scannet12_lut()
+
+
+def colorize(labels: np.ndarray, colors: np.ndarray) -> np.ndarray:
+  """Maps a label image to colours.
+
+  Args:
+    labels: `(..., ) int` class indices; `IGNORE_LABEL` (or any out-of-range value) is black.
+    colors: `(K, 3) uint8` colour table.
+
+  Returns:
+    `(..., 3) uint8` RGB image.
+  """
+  labels = np.asarray(labels)
+  colors = np.asarray(colors, np.uint8)
+  valid = (labels >= 0) & (labels < len(colors))
+  out = colors[np.where(valid, labels, 0)]
+  out[~valid] = 0
+  return out
