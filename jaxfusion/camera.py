@@ -58,7 +58,8 @@ def backproject(depth: jax.Array, camera: Camera) -> jax.Array:
 def transform_points(T_a_b: jax.Array, p_b: jax.Array) -> jax.Array:
   """Applies the rigid transform `T_a_b (4, 4)` to points `p_b (..., 3)` → `p_a (..., 3)`."""
   T_a_b = jnp.asarray(T_a_b, jnp.float32)
-  return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+  t = T_a_b[:3, 3].reshape((1,) * (p_b.ndim - 1) + (3,))
+  return p_b @ T_a_b[:3, :3].T + t
 
 
 def voxel_keys(p_world: jax.Array, voxel_size: jax.Array) -> tuple[jax.Array, jax.Array]:
