@@ -1,0 +1,103 @@
+"""Map quality on voxels: confusion matrix, per-class IoU, mIoU and accuracy (the columns of the
+paper's Tables I and II).
+
+Convention (as in the paper and the authors' evaluation): a voxel is scored where both the map
+and the ground truth have it; GT is the majority label of the GT pixels that fell in the voxel.
+Voxels only in the map or only in the GT are not scored, and their numbers are reported. The
+confusion matrix is K×K over all matched voxels, background included; rows are GT, columns are
+predictions. Shape legend: N voxels, K classes.
+"""
+
+import numpy as np
+
+
+def _as_rows(coords: np.ndarray) -> np.ndarray:
+  coords = np.ascontiguousarray(np.asarray(coords, np.int32).reshape(-1, 3))
+  return coords.view(np.dtype((np.void, 12))).reshape(-1)
+
+
+def match_voxels(map_coords, gt_coords) -> tuple[np.ndarray, np.ndarray]:
+  """Indices of voxels present in both maps.
+
+  Args:
+    map_coords: `(N, 3)` int voxel coordinates of the map.
+    gt_coords: `(M, 3)` int voxel coordinates of the ground truth (unique).
+
+  Returns:
+    `(map_index, gt_index)`, equal-length int arrays: `map_coords[map_index] ==
+    gt_coords[gt_index]` row by row.
+  """
+  _, map_index, gt_index = np.intersect1d(_as_rows(map_coords), _as_rows(gt_coords),
+                                          assume_unique=True, return_indices=True)
+  return map_index, gt_index
+
+
+def confusion_matrix(gt_labels, pred_labels, num_classes: int, *, ignore_label=None):
+  """`(K, K) int64` counts, rows = GT class, columns = predicted class.
+
+  GT labels equal to `ignore_label` (or outside [0, K)) are left out.
+  """
+  gt = np.asarray(gt_labels, np.int64).reshape(-1)
+  pred = np.asarray(pred_labels, np.int64).reshape(-1)
+  if gt.shape != pred.shape:
+    raise ValueError(f"gt and pred must have the same length; got {gt.shape} and {pred.shape}")
+  keep = (gt >= 0) & (gt < num_classes)
+  if ignore_label is not None:
+    keep &= gt != ignore_label
+  if np.any((pred[keep] < 0) | (pred[keep] >= num_classes)):
+    raise ValueError(f"predicted labels must lie in [0, {num_classes})")
+  return np.bincount(gt[keep] * num_classes + pred[keep],
+                     minlength=num_classes * num_classes).reshape(num_classes, num_classes)
+
+
+def iou_from_confusion(cm: np.ndarray) -> np.ndarray:
+  """Per-class IoU = TP / (TP + FP + FN); NaN for a class absent from both GT and prediction."""
+  cm = np.asarray(cm, np.float64)
+  tp = np.diag(cm)
+  denom = cm.sum(0) + cm.sum(1) - tp
+  with np.errstate(invalid="ignore", divide="ignore"):
+    return np.where(denom > 0, tp / np.where(denom > 0, denom, 1), np.nan)
+
+
+def mean_iou(cm: np.ndarray) -> float:
+  """Mean IoU over the classes present in the GT (rows with a voxel)."""
+  cm = np.asarray(cm)
+  present = cm.sum(1) > 0
+  if not np.any(present):
+    return float("nan")
+  return float(np.mean(np.nan_to_num(iou_from_confusion(cm)[present])))
+
+
+def accuracy(cm: np.ndarray) -> float:
+  """Fraction of scored voxels whose predicted label equals the GT label."""
+  cm = np.asarray(cm)
+  total = cm.sum()
+  return float(np.trace(cm) / total) if total else float("nan")
+
+
+def evaluate_map(voxels: dict, gt: dict, num_classes: int, *, ignore_label=None) -> dict:
+  """Scores a map (the dict of `jaxfusion.read_map`) against GT voxel labels.
+
+  Args:
+    voxels: dict with `coords (N, 3)` and `labels (N,)`.
+    gt: dict with `coords (M, 3)` and `labels (M,)`.
+    num_classes: K.
+    ignore_label: GT label to leave out (e.g. unmapped ScanNet classes).
+
+  Returns:
+    dict with `confusion (K, K)`, `iou (K,)`, `miou`, `accuracy`, `matched` (voxels scored),
+    `map_only` (map voxels with no GT), `gt_only` (GT voxels the map does not have).
+  """
+  map_index, gt_index = match_voxels(voxels["coords"], gt["coords"])
+  cm = confusion_matrix(np.asarray(gt["labels"])[gt_index],
+                        np.asarray(voxels["labels"])[map_index], num_classes,
+                        ignore_label=ignore_label)
+  return {
+      "confusion": cm,
+      "iou": iou_from_confusion(cm),
+      "miou": mean_iou(cm),
+      "accuracy": accuracy(cm),
+      "matched": int(len(map_index)),
+      "map_only": int(len(voxels["coords"]) - len(map_index)),
+      "gt_only": int(len(gt["coords"]) - len(gt_index)),
+  }

@@ -1,0 +1,47 @@
+"""Metrics against hand-computed confusion matrices."""
+
+import math
+
+import numpy as np
+import pytest
+
+from jaxfusion import metrics
+
+
+def test_confusion_iou_miou_accuracy_by_hand():
+  gt = [0, 0, 0, 1, 1, 2, 2, 2, 2]
+  pred = [0, 0, 1, 1, 2, 2, 2, 2, 0]
+  cm = metrics.confusion_matrix(gt, pred, 4)
+  np.testing.assert_array_equal(cm, [[2, 1, 0, 0], [0, 1, 1, 0], [1, 0, 3, 0], [0, 0, 0, 0]])
+  iou = metrics.iou_from_confusion(cm)
+  # class 0: TP 2, FP 1, FN 1 → 2/4; class 1: 1/(1+1+1); class 2: 3/(3+1+1); class 3: absent.
+  np.testing.assert_allclose(iou[:3], [0.5, 1 / 3, 0.6])
+  assert math.isnan(iou[3])
+  assert metrics.mean_iou(cm) == pytest.approx((0.5 + 1 / 3 + 0.6) / 3)
+  assert metrics.accuracy(cm) == pytest.approx(6 / 9)
+
+
+def test_class_predicted_but_absent_from_gt_lowers_nothing_in_miou_but_costs_fp():
+  cm = metrics.confusion_matrix([0, 0], [0, 1], 2)
+  assert metrics.iou_from_confusion(cm)[1] == 0.0
+  assert metrics.mean_iou(cm) == pytest.approx(0.5)   # only class 0 is present in GT
+
+
+def test_ignore_label_and_bad_predictions():
+  cm = metrics.confusion_matrix([0, 255, 1], [0, 1, 1], 2, ignore_label=255)
+  np.testing.assert_array_equal(cm, [[1, 0], [0, 1]])
+  with pytest.raises(ValueError, match="predicted labels"):
+    metrics.confusion_matrix([0], [5], 2)
+  with pytest.raises(ValueError, match="same length"):
+    metrics.confusion_matrix([0, 1], [0], 2)
+
+
+def test_evaluate_map_matches_voxels_and_reports_unmatched():
+  voxels = {"coords": np.array([[0, 0, 0], [1, 0, 0], [5, 5, 5]], np.int32),
+            "labels": np.array([1, 0, 1])}
+  gt = {"coords": np.array([[1, 0, 0], [0, 0, 0], [-1, 0, 0], [2, 0, 0]], np.int32),
+        "labels": np.array([0, 1, 0, 1])}
+  out = metrics.evaluate_map(voxels, gt, 2)
+  assert out["matched"] == 2 and out["map_only"] == 1 and out["gt_only"] == 2
+  np.testing.assert_array_equal(out["confusion"], [[1, 0], [0, 1]])
+  assert out["miou"] == 1.0 and out["accuracy"] == 1.0
