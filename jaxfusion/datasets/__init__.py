@@ -1,25 +1,37 @@
 """Datasets: the embedded synthetic world and readers for real RGB-D layouts.
 
-Every source yields the same interface, an `RGBDSequence` of `RGBDFrame`s.
+Every source yields the same interface, an `RGBDSequence` of `RGBDFrame`s:
+
+* `synthetic.make_sequence(env, trajectory, ...)` / `synthetic.sample_views(...)` — the
+  procedural "office"/"house" world with a train/test appearance domain gap;
+* `load_scannet(path)` — ScanNet exports (NYU40 → 12 classes, see `classes.NYU40_TABLE`);
+* `load_tum(path)` — TUM RGB-D folders;
+* `middlebury_frame()` — one real RGB-D frame from scikit-image's Middlebury pair;
+* `gt_voxel_labels(sequence)` — majority GT label per voxel, fused by the engine.
 """
 
-from jaxfusion.datasets.classes import (CLASS_COLORS, CLASS_NAMES, IGNORE_LABEL,
-                                        NYU40_TO_SCANNET12, SCANNET_CLASS_NAMES, SCANNET_COLORS)
-from jaxfusion.datasets.sequence import RGBDFrame, RGBDSequence, Sequence, load_sequence
-from jaxfusion.datasets.synthetic import list_sequences, make_sequence, sample_views
+from jaxfusion.datasets.classes import CLASS_COLORS
+from jaxfusion.datasets.classes import CLASS_NAMES
+from jaxfusion.datasets.classes import IGNORE_LABEL
+from jaxfusion.datasets.classes import NYU40_TO_SCANNET12
+from jaxfusion.datasets.classes import SCANNET_CLASS_NAMES
+from jaxfusion.datasets.classes import SCANNET_COLORS
+from jaxfusion.datasets.ground_truth import gt_voxel_labels
+from jaxfusion.datasets.middlebury import middlebury_frame
+from jaxfusion.datasets.preview import render_preview
+from jaxfusion.datasets.scannet import load_scannet
+from jaxfusion.datasets.sequence import RGBDFrame
+from jaxfusion.datasets.sequence import RGBDSequence
+from jaxfusion.datasets.sequence import Sequence
+from jaxfusion.datasets.sequence import load_sequence
+from jaxfusion.datasets.synthetic import list_sequences
+from jaxfusion.datasets.synthetic import make_sequence
+from jaxfusion.datasets.synthetic import sample_views
+from jaxfusion.datasets.tum import load_tum
 
-__all__ = [
-    "CLASS_COLORS",
-    "CLASS_NAMES",
-    "IGNORE_LABEL",
-    "NYU40_TO_SCANNET12",
-    "RGBDFrame",
-    "RGBDSequence",
-    "SCANNET_CLASS_NAMES",
-    "SCANNET_COLORS",
-    "Sequence",
-    "list_sequences",
-    "load_sequence",
-    "make_sequence",
-    "sample_views",
-]
+__all__ = sorted([
+    "CLASS_COLORS", "CLASS_NAMES", "IGNORE_LABEL", "NYU40_TO_SCANNET12", "RGBDFrame",
+    "RGBDSequence", "SCANNET_CLASS_NAMES", "SCANNET_COLORS", "Sequence", "gt_voxel_labels",
+    "list_sequences", "load_scannet", "load_sequence", "load_tum", "make_sequence",
+    "middlebury_frame", "render_preview", "sample_views",
+])

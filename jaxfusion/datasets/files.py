@@ -1,0 +1,84 @@
+"""Reading images, depth maps and matrices from disk with errors that name the file.
+
+Every reader raises `FileNotFoundError` for a missing file and `BadFileError` (a `ValueError`)
+for one that exists but cannot be used; loaders catch `BadFileError` to skip broken frames
+when asked to, and count them.
+"""
+
+import os
+
+import cv2
+import numpy as np
+
+
+class BadFileError(ValueError):
+  """A file exists but is corrupt or holds the wrong kind of data."""
+
+
+def _require(path: str) -> None:
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"missing file: {path}")
+
+
+def read_rgb(path: str) -> np.ndarray:
+  """`(H, W, 3) uint8` RGB image from a JPEG/PNG file."""
+  _require(path)
+  img = cv2.imread(path, cv2.IMREAD_COLOR)
+  if img is None:
+    raise BadFileError(f"corrupt or unreadable image: {path}")
+  return img[..., ::-1].copy()
+
+
+def read_png16(path: str) -> np.ndarray:
+  """`(H, W)` integer image (uint16 depth or label PNG) read without conversion."""
+  _require(path)
+  img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  if img is None:
+    raise BadFileError(f"corrupt or unreadable image: {path}")
+  if img.ndim != 2:
+    raise BadFileError(f"expected a single-channel image in {path}; got shape {img.shape}")
+  if img.dtype not in (np.uint8, np.uint16):
+    raise BadFileError(f"expected an 8- or 16-bit integer image in {path}; got {img.dtype}")
+  return img
+
+
+def read_depth(path: str, scale: float) -> np.ndarray:
+  """`(H, W) float32` metres from a uint16 depth PNG holding `scale` units per metre."""
+  raw = read_png16(path)
+  if raw.dtype != np.uint16:
+    raise BadFileError(f"expected a 16-bit depth PNG in {path}; got {raw.dtype}")
+  return (raw.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+def read_matrix(path: str, shape=None) -> np.ndarray:
+  """A whitespace-separated float matrix from a text file.
+
+  Args:
+    path: the file.
+    shape: expected shape, e.g. `(4, 4)`; None accepts any 2-D shape.
+
+  Returns:
+    `float64` array (may contain inf/nan; callers decide what is valid).
+  """
+  _require(path)
+  try:
+    m = np.loadtxt(path, dtype=np.float64, ndmin=2)
+  except ValueError as e:
+    raise BadFileError(f"cannot parse a matrix from {path}: {e}") from e
+  if shape is not None and m.shape != tuple(shape):
+    raise BadFileError(f"expected a {shape[0]}x{shape[1]} matrix in {path}; got {m.shape}")
+  return m
+
+
+def write_png16(path: str, img: np.ndarray) -> None:
+  """Writes a `(H, W)` uint8/uint16 image as PNG (for fixtures and exports)."""
+  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  if not cv2.imwrite(path, np.asarray(img)):
+    raise OSError(f"could not write {path}")
+
+
+def write_rgb(path: str, rgb: np.ndarray) -> None:
+  """Writes an `(H, W, 3) uint8` RGB image (JPEG or PNG by extension)."""
+  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  if not cv2.imwrite(path, np.asarray(rgb, np.uint8)[..., ::-1]):
+    raise OSError(f"could not write {path}")
