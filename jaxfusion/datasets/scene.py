@@ -573,12 +573,18 @@ def _house(plan: _Planner):
         if rng.uniform() < 0.9:
           yaw = np.pi if sy > 0 else 0.0
           plan.beside(dining, "chair", CHAIR, (0.46, 0.46, 0.0), (sx * w, sy * (d / 2 + 0.3)), yaw)
-    for _ in range(int(rng.integers(1, 4))):
+    for _ in range(int(rng.integers(2, 5))):
       plan.on_top(dining, "bottle", BOTTLE, (0.08, 0.08, 0.0),
                   (rng.uniform(-w / 2 + 0.15, w / 2 - 0.15), rng.uniform(-0.2, 0.2)))
     if rng.uniform() < 0.6:
       plan.on_top(dining, "plant", PLANT, (0.2, 0.2, 0.35), (0.0, 0.0))
-  if rng.uniform() < 0.7:
+  side = plan.against_wall("table", TABLE, (0.55, 0.55, 0.55))
+  if side is not None:
+    if rng.uniform() < 0.6:
+      plan.on_top(side, "bottle", BOTTLE, (0.08, 0.08, 0.0), (0.0, 0.0))
+    else:
+      plan.on_top(side, "plant", PLANT, (0.2, 0.2, 0.35), (0.0, 0.0))
+  if rng.uniform() < 0.9:
     desk = plan.against_wall("table", TABLE, (1.1, 0.6, 0.75))
     if desk is not None:
       plan.on_top(desk, "tv", TV, (0.55, 0.2, 0.0), (0.0, -0.12))

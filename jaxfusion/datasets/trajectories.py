@@ -86,7 +86,11 @@ def trajectory(room, index: int, num_frames: int) -> np.ndarray:
     py = centre[1] + ay * np.sin(2 * a) * 0.9
     eye = np.stack([px, py, eye_z * np.ones_like(px)], -1)
     vel = np.stack([ax * np.cos(a), 2 * 0.9 * ay * np.cos(2 * a)], -1)
-    heading = np.arctan2(vel[:, 1], vel[:, 0]) + 0.9 * np.sin(2 * np.pi * 4 * s)
+    ahead = vel / np.linalg.norm(vel, axis=-1, keepdims=True)
+    inward = centre - eye[:, :2]
+    inward /= np.maximum(np.linalg.norm(inward, axis=-1, keepdims=True), 0.3)
+    gaze = 0.5 * ahead + inward
+    heading = np.arctan2(gaze[:, 1], gaze[:, 0]) + 0.6 * np.sin(2 * np.pi * 4 * s)
     target = np.stack([px + 2.0 * np.cos(heading), py + 2.0 * np.sin(heading),
                        0.5 * np.ones_like(px)], -1)
   return np.stack([look_at(e, t) for e, t in zip(eye, target)])
