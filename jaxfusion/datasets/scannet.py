@@ -156,7 +156,8 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
       if size is None:
         size = d.shape
         if not (0 <= camera.cx < size[1] and 0 <= camera.cy < size[0]):
-          raise files.BadFileError(
+          # A plain ValueError: a wrong intrinsics file is never skipped as a bad frame.
+          raise ValueError(
               f"intrinsics in {intr_path} (cx={camera.cx}, cy={camera.cy}) do not fit the "
               f"{size[1]}x{size[0]} depth images")
       if d.shape != size:
@@ -174,7 +175,7 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
                          interpolation=cv2.INTER_NEAREST)
         lab = nyu40_to_classes(raw)
     except (files.BadFileError, FileNotFoundError) as e:
-      if not skip_bad or (size is None and "intrinsics" in str(e)):
+      if not skip_bad:
         raise
       skipped.append({"frame": i, "file": current, "reason": str(e)})
       continue
