@@ -1,0 +1,173 @@
+"""Tuning: the surrogate's gradients against finite differences and finite at the edges, the
+sweep against the sequential path and metrics.evaluate_map, the tuner, and the commands."""
+
+import argparse
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfusion as jf
+from jaxfusion import batch
+from jaxfusion import metrics
+from jaxfusion import tune
+from tests import engine_helpers as h
+
+K = 4
+VOXEL = 0.25
+CAPACITY = 512
+CAM = jf.Camera(8.0, 8.0, 4.5, 3.5)
+
+
+def label_of(keys):
+  """GT label of a voxel: a 2×2-voxel checkerboard of K classes in x, y."""
+  return ((keys[..., 0] // 2) + 2 * (keys[..., 1] // 2)) % K
+
+
+def scene(seed=0, num_frames=4, height=8, width=10):
+  """A wavy surface seen from nearby poses, GT voxel labels, and a simulated noisy net."""
+  rng = np.random.default_rng(seed)
+  depths, poses, labels, keys = [], [], [], []
+  v, u = np.mgrid[0:height, 0:width]
+  for t in range(num_frames):
+    T = np.eye(4, dtype=np.float32)
+    T[:3, :3] = h.rotation(rng.normal(0, 0.05, 3))
+    T[:3, 3] = [0.15 * t, 0.1 * np.sin(t), 0.0]
+    depth = (1.2 + 0.15 * np.sin(0.7 * u + t) + 0.1 * np.cos(0.5 * v)).astype(np.float32)
+    depth = h.drop_ambiguous_pixels(depth, T, CAM, VOXEL)
+    d = depth.astype(np.float64)
+    p_cam = np.stack([d * (u - CAM.cx) / CAM.fx, d * (v - CAM.cy) / CAM.fy, d], -1)
+    key = np.floor((p_cam @ T[:3, :3].T.astype(np.float64) + T[:3, 3]) / VOXEL).astype(np.int32)
+    labels.append(np.where(depth > 0, label_of(key), -1))
+    keys.append(key[depth > 0])
+    depths.append(depth)
+    poses.append(T)
+  labels = np.stack(labels)
+  probs, var = tune.simulate_predictions(jax.random.PRNGKey(seed), labels, num_classes=K,
+                                         num_samples=4, outlier_rate=0.15)
+  frames = jf.Frame(np.stack(depths), np.stack(poses), np.asarray(probs), np.asarray(var))
+  coords = np.unique(np.concatenate(keys), axis=0)
+  return frames, coords, label_of(coords).astype(np.int32)
+
+
+@pytest.fixture(scope="module")
+def data():
+  return scene()
+
+
+@pytest.fixture(autouse=True)
+def strict_numerics():
+  with jax.debug_nans(True):
+    yield
+
+
+def loss_of(frames, coords, labels, name="D+R", aggregate="sum"):
+  def f(hp):
+    rule = jf.rules.by_name(name, aggregate=aggregate, **hp)
+    return tune.sequence_loss(rule, frames, CAM, coords, labels, capacity=CAPACITY,
+                              voxel_size=VOXEL)
+  return jax.jit(jax.value_and_grad(f))
+
+
+def test_gradients_match_finite_differences(data):
+  frames, coords, labels = data
+  f = loss_of(frames, coords, labels, aggregate="mean")
+  hp = {"beta": 0.3, "eps": 1e-3, "alpha0": 2.0}
+  value, grad = f({k: jnp.float32(v) for k, v in hp.items()})
+  assert 0 < float(value) < 20
+  for name, step in [("beta", 1e-2), ("eps", 1e-4), ("alpha0", 1e-1)]:
+    up = dict(hp, **{name: hp[name] + step})
+    down = dict(hp, **{name: hp[name] - step})
+    fd = (float(f(up)[0]) - float(f(down)[0])) / (2 * step)
+    np.testing.assert_allclose(float(grad[name]), fd, rtol=5e-2, atol=1e-3 * abs(fd) + 1e-4,
+                               err_msg=name)
+  assert abs(float(grad["beta"])) > 1e-3   # β matters on this data
+
+
+def test_gradients_finite_at_zero_variance_one_hot_and_empty_voxels(data):
+  frames, coords, labels = data
+  one_hot = jax.nn.one_hot(np.argmax(frames.probs, -1), K)
+  frames = frames._replace(probs=np.asarray(one_hot), var=np.zeros_like(frames.var))
+  # GT voxels the map never sees (empty), and padding rows with label -1.
+  far = coords + 1000
+  coords = np.concatenate([coords, far, np.zeros((3, 3), np.int32)])
+  labels = np.concatenate([labels, label_of(far), -np.ones(3, np.int32)])
+  f = loss_of(frames, coords, labels)
+  for beta in (0.0, 0.5, 1.0):
+    value, grad = f({"beta": jnp.float32(beta), "eps": jnp.float32(1e-12),
+                     "alpha0": jnp.float32(0.0)})
+    assert np.isfinite(float(value))
+    assert all(np.isfinite(float(g)) for g in grad.values()), grad
+  # A map with no GT voxel at all: loss 0, gradient 0.
+  value, grad = loss_of(frames, far, label_of(far))({"beta": jnp.float32(0.3)})
+  assert float(value) == 0.0 and float(grad["beta"]) == 0.0
+
+
+def test_sweep_equals_sequential_maps_scored_with_metrics(data):
+  frames, coords, labels = data
+  betas = [0.0, 0.3, 0.9]
+  out = tune.sweep_beta(frames, CAM, coords, labels, betas=betas, rule="D+R",
+                        capacity=CAPACITY, voxel_size=VOXEL)
+  gt = {"coords": coords, "labels": labels}
+  for r, beta in enumerate(betas):
+    rule = jf.rules.robust(beta=beta)
+    state = jf.init_map(capacity=CAPACITY, num_classes=K, voxel_size=VOXEL, rule=rule)
+    state = jf.fuse_sequence(state, frames, CAM, rule)
+    ref = metrics.evaluate_map(jf.read_map(state), gt, K)
+    np.testing.assert_array_equal(out["confusion"][r], ref["confusion"])
+    assert out["miou"][r] == pytest.approx(ref["miou"])
+    assert out["accuracy"][r] == pytest.approx(ref["accuracy"])
+    assert out["loss"][r] == pytest.approx(
+        float(tune.calibration_loss(state, coords, labels)), rel=1e-5)
+  assert out["dropped"].sum() == 0
+
+
+def test_tuner_lowers_the_loss_and_keeps_beta_in_range(data):
+  frames, coords, labels = data
+  res = tune.tune_hparams(frames, CAM, coords, labels, rule="D+R", init={"beta": 1.5},
+                          train=("beta", "eps"), steps=6, learning_rate=0.3,
+                          capacity=CAPACITY, voxel_size=VOXEL)
+  assert res.losses.shape == (7,) and res.path["beta"].shape == (7,)
+  assert res.path["beta"][0] == pytest.approx(1 - 1e-4, abs=1e-6)   # clamped by the sigmoid
+  assert np.all((res.path["beta"] > 0) & (res.path["beta"] < 1))
+  assert res.losses[-1] < res.losses[0]
+  assert res.rule.name == "robust_dr" and 0 < res.hparams["beta"] < 1
+  assert res.hparams["eps"] > 0 and np.all(np.isfinite(res.grads["eps"]))
+
+
+def test_constrain_round_trip_and_tuner_errors(data):
+  hp = {"beta": 0.3, "eps": 1e-6, "alpha0": 6.9}
+  back = tune.constrain(tune.unconstrain(hp))
+  for k, v in hp.items():
+    assert float(back[k]) == pytest.approx(v, rel=1e-5)
+  assert 0 < float(tune.constrain({"beta": jnp.float32(-40.0)})["beta"]) < 1e-10 + 1
+  frames, coords, labels = data
+  kw = dict(capacity=CAPACITY, voxel_size=VOXEL, steps=1)
+  with pytest.raises(ValueError, match="only the robust rules"):
+    tune.tune_hparams(frames, CAM, coords, labels, rule="bayes", **kw)
+  with pytest.raises(ValueError, match="tunes"):
+    tune.tune_hparams(frames, CAM, coords, labels, rule="R", train=("eps",), **kw)
+  with pytest.raises(ValueError, match="eps must be"):
+    tune.tune_hparams(frames, CAM, coords, labels, init={"eps": -1.0}, **kw)
+  with pytest.raises(ValueError, match="GT must be"):
+    tune.sweep_beta(frames, CAM, coords[:, :2], labels, betas=[0.3], capacity=CAPACITY)
+
+
+def test_commands_run_on_the_synthetic_world(tmp_path):
+  parser = argparse.ArgumentParser()
+  sub = parser.add_subparsers()
+  tune.add_sweep_parser(sub)
+  tune.add_tune_beta_parser(sub)
+  small = ["--frames", "2", "--height", "12", "--width", "16", "--voxel-size", "0.2"]
+  args = parser.parse_args(["sweep", "--num-betas", "3", "--json", str(tmp_path / "s.json"),
+                            "--plot", str(tmp_path / "s.png"), *small])
+  assert args.func(args) == 0
+  swept = json.loads((tmp_path / "s.json").read_text())
+  assert len(swept["miou"]) == 3 and (tmp_path / "s.png").exists()
+  args = parser.parse_args(["tune-beta", "--steps", "2", "--held-out", "office:1",
+                            "--json", str(tmp_path / "t.json"), *small])
+  assert args.func(args) == 0
+  tuned = json.loads((tmp_path / "t.json").read_text())
+  assert 0 < tuned["hparams"]["beta"] < 1 and len(tuned["held_out"]) == 1
