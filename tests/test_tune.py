@@ -2,6 +2,7 @@
 sweep against the sequential path and metrics.evaluate_map, the tuner, and the commands."""
 
 import argparse
+import functools
 import json
 
 import jax
@@ -63,45 +64,53 @@ def strict_numerics():
     yield
 
 
-def loss_of(frames, coords, labels, name="D+R", aggregate="sum"):
+@functools.partial(jax.jit, static_argnames="name")
+def loss_and_grad(hp, frames, coords, labels, *, name="D+R"):
   def f(hp):
-    rule = jf.rules.by_name(name, aggregate=aggregate, **hp)
+    rule = jf.rules.by_name(name, aggregate="mean", **hp)
     return tune.sequence_loss(rule, frames, CAM, coords, labels, capacity=CAPACITY,
                               voxel_size=VOXEL)
-  return jax.jit(jax.value_and_grad(f))
+  return jax.value_and_grad(f)(hp)
+
+
+def with_empty_and_padding(coords, labels):
+  """GT voxels the map never sees (empty voxels), and padding rows with label -1."""
+  far = coords + 1000
+  return (np.concatenate([coords, far, np.zeros((3, 3), np.int32)]),
+          np.concatenate([labels, label_of(far), -np.ones(3, np.int32)]))
+
+
+def f32(hp):
+  return {k: jnp.float32(v) for k, v in hp.items()}
 
 
 def test_gradients_match_finite_differences(data):
   frames, coords, labels = data
-  f = loss_of(frames, coords, labels, aggregate="mean")
+  coords, labels = with_empty_and_padding(coords, labels)
   hp = {"beta": 0.3, "eps": 1e-3, "alpha0": 2.0}
-  value, grad = f({k: jnp.float32(v) for k, v in hp.items()})
+  value, grad = loss_and_grad(f32(hp), frames, coords, labels)
   assert 0 < float(value) < 20
   for name, step in [("beta", 1e-2), ("eps", 1e-4), ("alpha0", 1e-1)]:
-    up = dict(hp, **{name: hp[name] + step})
-    down = dict(hp, **{name: hp[name] - step})
-    fd = (float(f(up)[0]) - float(f(down)[0])) / (2 * step)
-    np.testing.assert_allclose(float(grad[name]), fd, rtol=5e-2, atol=1e-3 * abs(fd) + 1e-4,
-                               err_msg=name)
+    up = loss_and_grad(f32(dict(hp, **{name: hp[name] + step})), frames, coords, labels)[0]
+    down = loss_and_grad(f32(dict(hp, **{name: hp[name] - step})), frames, coords, labels)[0]
+    fd = (float(up) - float(down)) / (2 * step)
+    np.testing.assert_allclose(float(grad[name]), fd, rtol=5e-2, atol=1e-4, err_msg=name)
   assert abs(float(grad["beta"])) > 1e-3   # β matters on this data
 
 
 def test_gradients_finite_at_zero_variance_one_hot_and_empty_voxels(data):
   frames, coords, labels = data
+  coords, labels = with_empty_and_padding(coords, labels)
   one_hot = jax.nn.one_hot(np.argmax(frames.probs, -1), K)
   frames = frames._replace(probs=np.asarray(one_hot), var=np.zeros_like(frames.var))
-  # GT voxels the map never sees (empty), and padding rows with label -1.
-  far = coords + 1000
-  coords = np.concatenate([coords, far, np.zeros((3, 3), np.int32)])
-  labels = np.concatenate([labels, label_of(far), -np.ones(3, np.int32)])
-  f = loss_of(frames, coords, labels)
   for beta in (0.0, 0.5, 1.0):
-    value, grad = f({"beta": jnp.float32(beta), "eps": jnp.float32(1e-12),
-                     "alpha0": jnp.float32(0.0)})
+    value, grad = loss_and_grad(f32({"beta": beta, "eps": 1e-12, "alpha0": 0.0}), frames,
+                                coords, labels)
     assert np.isfinite(float(value))
     assert all(np.isfinite(float(g)) for g in grad.values()), grad
-  # A map with no GT voxel at all: loss 0, gradient 0.
-  value, grad = loss_of(frames, far, label_of(far))({"beta": jnp.float32(0.3)})
+  # No scored GT voxel at all: loss 0, gradient 0.
+  value, grad = loss_and_grad(f32({"beta": 0.3, "eps": 1e-12, "alpha0": 0.0}), frames, coords,
+                              -np.ones_like(labels))
   assert float(value) == 0.0 and float(grad["beta"]) == 0.0
 
 
@@ -127,9 +136,9 @@ def test_sweep_equals_sequential_maps_scored_with_metrics(data):
 def test_tuner_lowers_the_loss_and_keeps_beta_in_range(data):
   frames, coords, labels = data
   res = tune.tune_hparams(frames, CAM, coords, labels, rule="D+R", init={"beta": 1.5},
-                          train=("beta", "eps"), steps=6, learning_rate=0.3,
+                          train=("beta", "eps"), steps=4, learning_rate=0.3,
                           capacity=CAPACITY, voxel_size=VOXEL)
-  assert res.losses.shape == (7,) and res.path["beta"].shape == (7,)
+  assert res.losses.shape == (5,) and res.path["beta"].shape == (5,)
   assert res.path["beta"][0] == pytest.approx(1 - 1e-4, abs=1e-6)   # clamped by the sigmoid
   assert np.all((res.path["beta"] > 0) & (res.path["beta"] < 1))
   assert res.losses[-1] < res.losses[0]
@@ -155,19 +164,31 @@ def test_constrain_round_trip_and_tuner_errors(data):
     tune.sweep_beta(frames, CAM, coords[:, :2], labels, betas=[0.3], capacity=CAPACITY)
 
 
-def test_commands_run_on_the_synthetic_world(tmp_path):
+def test_commands_run(data, tmp_path, monkeypatch):
+  """The sweep and tune-beta commands end to end, on the small scene instead of the rendered
+  synthetic world (which `load_calibration_sequence` renders at the sizes given)."""
+  frames, coords, labels = data
+
+  def load(spec, **kwargs):
+    del kwargs
+    return {"name": spec, "frames": frames, "camera": CAM, "num_classes": K,
+            "gt": {"coords": coords, "labels": labels}, "source": "test scene",
+            "capacity": CAPACITY}
+
+  monkeypatch.setattr(tune, "load_calibration_sequence", load)
   parser = argparse.ArgumentParser()
   sub = parser.add_subparsers()
   tune.add_sweep_parser(sub)
   tune.add_tune_beta_parser(sub)
-  small = ["--frames", "2", "--height", "12", "--width", "16", "--voxel-size", "0.2"]
-  args = parser.parse_args(["sweep", "--num-betas", "3", "--json", str(tmp_path / "s.json"),
-                            "--plot", str(tmp_path / "s.png"), *small])
+  args = parser.parse_args(["sweep", "--num-betas", "3", "--beta-max", "0.9", "--voxel-size",
+                            str(VOXEL), "--json", str(tmp_path / "s.json"),
+                            "--plot", str(tmp_path / "s.png")])
   assert args.func(args) == 0
   swept = json.loads((tmp_path / "s.json").read_text())
   assert len(swept["miou"]) == 3 and (tmp_path / "s.png").exists()
-  args = parser.parse_args(["tune-beta", "--steps", "2", "--held-out", "office:1",
-                            "--json", str(tmp_path / "t.json"), *small])
+  args = parser.parse_args(["tune-beta", "--steps", "4", "--learning-rate", "0.3", "--tune",
+                            "beta,eps", "--held-out", "a:1,b:2", "--voxel-size", str(VOXEL),
+                            "--json", str(tmp_path / "t.json")])
   assert args.func(args) == 0
   tuned = json.loads((tmp_path / "t.json").read_text())
-  assert 0 < tuned["hparams"]["beta"] < 1 and len(tuned["held_out"]) == 1
+  assert 0 < tuned["hparams"]["beta"] < 1 and len(tuned["held_out"]) == 2
