@@ -77,3 +77,37 @@ def voxel_keys(p_world: jax.Array, voxel_size: jax.Array) -> tuple[jax.Array, ja
   in_range = jnp.all(jnp.isfinite(scaled) & (jnp.abs(scaled) < KEY_LIMIT), axis=-1)
   keys = jnp.where(in_range[:, None], scaled, 0.0).astype(jnp.int32)
   return keys, in_range
+
+
+def depth_to_voxel_keys(depth: jax.Array, T_world_cam: jax.Array, camera: Camera,
+                        voxel_size: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """Voxel keys of every pixel of a depth image, in one elementwise pass.
+
+  The same arithmetic as `voxel_keys(transform_points(T, backproject(depth, camera)), size)`,
+  written per coordinate so that XLA fuses it into one loop over the pixels instead of
+  materialising `(N, 3)` points and calling a `(N, 3) × (3, 3)` matrix product.
+
+  Args:
+    depth: `(H, W)` float z-depth in metres.
+    T_world_cam: `(4, 4)` float camera-to-world pose.
+    camera: intrinsics.
+    voxel_size: scalar voxel edge in metres.
+
+  Returns:
+    `(keys, in_range)`: `(H·W, 3) int32` keys (0 where out of range) and `(H·W,) bool`, False
+    for non-finite points and keys outside ±KEY_LIMIT, as `voxel_keys`.
+  """
+  depth = jnp.asarray(depth, jnp.float32)
+  T = jnp.asarray(T_world_cam, jnp.float32)
+  height, width = depth.shape
+  u = jnp.arange(width, dtype=jnp.float32)[None, :]
+  v = jnp.arange(height, dtype=jnp.float32)[:, None]
+  x = depth * ((u - camera.cx) / camera.fx)
+  y = depth * ((v - camera.cy) / camera.fy)
+  scaled = [jnp.floor((x * T[i, 0] + y * T[i, 1] + depth * T[i, 2] + T[i, 3]) / voxel_size)
+            for i in range(3)]
+  in_range = jnp.ones_like(depth, dtype=bool)
+  for s in scaled:
+    in_range = in_range & jnp.isfinite(s) & (jnp.abs(s) < KEY_LIMIT)
+  keys = jnp.stack([jnp.where(in_range, s, 0.0).astype(jnp.int32) for s in scaled], axis=-1)
+  return keys.reshape(height * width, 3), in_range.reshape(height * width)

@@ -26,7 +26,7 @@ _PRIME_Y = np.uint32(0x85EBCA77)
 _PRIME_Z = np.uint32(0xC2B2AE3D)
 
 
-def _fmix32(h: jax.Array) -> jax.Array:
+def fmix32(h: jax.Array) -> jax.Array:
   """MurmurHash3's 32-bit finaliser: every input bit affects every output bit."""
   h = h ^ (h >> 16)
   h = h * np.uint32(0x85EBCA6B)
@@ -38,7 +38,7 @@ def _fmix32(h: jax.Array) -> jax.Array:
 def hash_keys(keys: jax.Array) -> jax.Array:
   """Hashes `(N, 3) int32` keys to `(N,) uint32`."""
   k = jax.lax.bitcast_convert_type(jnp.asarray(keys, jnp.int32), jnp.uint32)
-  return _fmix32(k[:, 0] * _PRIME_X ^ k[:, 1] * _PRIME_Y ^ k[:, 2] * _PRIME_Z)
+  return fmix32(k[:, 0] * _PRIME_X ^ k[:, 1] * _PRIME_Y ^ k[:, 2] * _PRIME_Z)
 
 
 def empty_table(capacity: int) -> jax.Array:
