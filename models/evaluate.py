@@ -228,6 +228,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   p.add_argument("--timing", action="store_true",
                  help="also time MC sampling per frame for M = 1, 8, 32 at 120x160")
   p.add_argument("--json", default=None, help="write the results here as JSON")
+  p.add_argument("--cache", default=None, help="folder to cache rendered views in")
   args = p.parse_args(argv)
 
   from . import train  # The data helpers live with the training command.
@@ -242,7 +243,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "test_shifted": ("test", seed + 20_000, args.shift)}
   for i, (name, (domain, split_seed, shift)) in enumerate(splits.items()):
     x, y = train.load_domain(domain, args.num_images, height=height, width=width,
-                             seed=split_seed, shift=shift)
+                             seed=split_seed, shift=shift, cache_dir=args.cache)
     res = evaluate_arrays(model.graphdef, model.params, x, y, key=jax.random.fold_in(key, i),
                           num_samples=args.num_samples, num_classes=model.config.num_classes)
     results[name] = res

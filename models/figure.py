@@ -93,6 +93,7 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
   p.add_argument("--height", type=int, default=None, help="default: the training size")
   p.add_argument("--width", type=int, default=None)
   p.add_argument("--seed", type=int, default=3)
+  p.add_argument("--cache", default=None, help="folder to cache rendered views in")
   args = p.parse_args(argv)
 
   from jaxfusion.datasets import classes
@@ -101,7 +102,7 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
   height = args.height or data.get("height", 96)
   width = args.width or data.get("width", 128)
   rgb, labels = train.load_domain(args.domain, args.num_views, height=height, width=width,
-                                  seed=args.seed)
+                                  seed=args.seed, cache_dir=args.cache)
   preds = evaluate.predict_arrays(model.graphdef, model.params, rgb,
                                   key=jax.random.key(args.seed), num_samples=args.num_samples)
   out = render_figure(

@@ -13,6 +13,7 @@ Shape legend: N training images, B batch, H×W pixels, K classes.
 
 import argparse
 import functools
+import hashlib
 import json
 import pathlib
 import platform
@@ -33,7 +34,7 @@ from . import checkpoint, evaluate, net, sampling
 class TrainConfig(NamedTuple):
   """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
 
-  steps: int = 1200
+  steps: int = 1500
   batch_size: int = 12
   learning_rate: float = 3e-3
   warmup_steps: int = 60
@@ -231,12 +232,39 @@ def _num_classes(params: nnx.State) -> int:
 
 
 def load_domain(domain: str, num_images: int, *, height: int, width: int, seed: int,
-                shift: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-  """Renders `num_images` views of the embedded world (`jaxfusion.datasets.synthetic`)."""
+                shift: float = 1.0, cache_dir: str | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+  """Renders `num_images` views of the embedded world (`jaxfusion.datasets.synthetic`).
+
+  Args:
+    domain: "train" or "test" (shifted palettes, textures, lighting and shapes).
+    num_images: N.
+    height: H.
+    width: W.
+    seed: scene/view seed.
+    shift: test-domain shift strength.
+    cache_dir: if given, rendered views are stored there as `.npz` and reused when the same
+      split is asked for again (rendering dominates start-up time on a CPU).
+
+  Returns:
+    `(rgb (N, H, W, 3) uint8, labels (N, H, W) int32)`.
+  """
+  cache = None
+  if cache_dir is not None:
+    cache = pathlib.Path(cache_dir) / (
+        f"{domain}_n{num_images}_{height}x{width}_seed{seed}_shift{shift:g}_"
+        f"{dataset_version()}.npz")
+    if cache.is_file():
+      with np.load(cache) as data:
+        return data["rgb"], data["labels"]
   from jaxfusion.datasets import synthetic  # Application layer: only the commands need it.
   rgb, labels = synthetic.sample_views(domain, num_images, height=height, width=width,
                                        seed=seed, shift=shift)
-  return np.asarray(rgb, np.uint8), np.asarray(labels, np.int32)
+  rgb, labels = np.asarray(rgb, np.uint8), np.asarray(labels, np.int32)
+  if cache is not None:
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, rgb=rgb, labels=labels)
+  return rgb, labels
 
 
 def dataset_class_names() -> tuple[str, ...]:
@@ -261,9 +289,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p.add_argument("--quick", action="store_true",
                  help="a tiny run (minutes): fewer images and steps; for smoke tests")
   p.add_argument("--steps", type=int, default=None)
-  p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
-  p.add_argument("--lr", type=float, default=TrainConfig.learning_rate)
-  p.add_argument("--weight-decay", type=float, default=TrainConfig.weight_decay)
+  p.add_argument("--batch-size", type=int, default=TrainConfig().batch_size)
+  p.add_argument("--lr", type=float, default=TrainConfig().learning_rate)
+  p.add_argument("--weight-decay", type=float, default=TrainConfig().weight_decay)
   p.add_argument("--height", type=int, default=96)
   p.add_argument("--width", type=int, default=128)
   p.add_argument("--num-train", type=int, default=None)
@@ -271,6 +299,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p.add_argument("--eval-samples", type=int, default=16, help="M for the MC evaluation")
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--shift", type=float, default=1.0, help="test-domain shift strength")
+  p.add_argument("--cache", default=None, help="folder to cache rendered views in")
   p.add_argument("--stem-width", type=int, default=net.SegNetConfig.stem_width)
   p.add_argument("--widths", default=",".join(map(str, net.SegNetConfig.widths)))
   p.add_argument("--strides", default=",".join(map(str, net.SegNetConfig.strides)))
@@ -283,9 +312,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
   args = parse_args(argv)
-  steps = args.steps if args.steps is not None else (40 if args.quick else TrainConfig.steps)
-  num_train = args.num_train if args.num_train is not None else (64 if args.quick else 1200)
-  num_eval = args.num_eval if args.num_eval is not None else (16 if args.quick else 96)
+  steps = args.steps if args.steps is not None else (40 if args.quick else TrainConfig().steps)
+  num_train = args.num_train if args.num_train is not None else (64 if args.quick else 800)
+  num_eval = args.num_eval if args.num_eval is not None else (16 if args.quick else 48)
   ints = lambda text: tuple(int(v) for v in text.split(","))
   class_names = dataset_class_names()
   config = net.SegNetConfig(
@@ -295,7 +324,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       dropout_rate=args.dropout)
   cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
                     weight_decay=args.weight_decay)
-  size = dict(height=args.height, width=args.width)
+  size = dict(height=args.height, width=args.width, cache_dir=args.cache)
 
   t0 = time.time()
   print(f"rendering data: {num_train} train, {num_eval} val, {num_eval} test at "
@@ -337,6 +366,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       "seed": args.seed,
       "data": {"generator": "jaxfusion.datasets.synthetic.sample_views",
                "version": dataset_version(), "height": args.height, "width": args.width,
+               "train_sha256": hashlib.sha256(train_x.tobytes() + train_y.tobytes()).hexdigest(),
+               "test_sha256": hashlib.sha256(test_x.tobytes() + test_y.tobytes()).hexdigest(),
                "train": {"domain": "train", "num_images": num_train, "seed": args.seed},
                "heldout": {"domain": "train", "num_images": num_eval,
                            "seed": args.seed + 10_000},

@@ -100,7 +100,7 @@ def test_vmap_over_keys_equals_a_loop_over_keys(tiny, image):
   m = M
   key = jax.random.key(5)
   vmapped = sampling.mc_samples(graphdef, params, key, image, num_samples=m)
-  apply_fn = sampling.stochastic_apply_fn(graphdef)
+  apply_fn = jax.jit(sampling.stochastic_apply_fn(graphdef))
   looped = np.stack([np.asarray(apply_fn(params, k, image)) for k in jax.random.split(key, m)])
   np.testing.assert_allclose(np.asarray(vmapped), looped, atol=1e-5)
 

@@ -1,0 +1,203 @@
+"""Probability sources: every adapter yields (probs, var) that `fuse_frame` accepts end to end."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfusion
+from jaxfusion import sources
+from models import net, sampling
+
+H, W, K = 16, 16, 7
+M = 4
+CAMERA = jaxfusion.Camera(12.0, 12.0, 7.5, 7.5)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+  return net.init(net.tiny_config(K), key=jax.random.key(0))
+
+
+@pytest.fixture(scope="module")
+def image():
+  return np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8)
+
+
+def _fuse(prediction, rule):
+  """Fuses one frame at 1 m in front of the camera; returns the read-out map."""
+  state = jaxfusion.init_map(capacity=1024, num_classes=K, voxel_size=0.1, rule=rule)
+  depth = np.full((H, W), 1.0, np.float32)
+  frame = jaxfusion.Frame(depth, np.eye(4, dtype=np.float32), prediction.probs, prediction.var)
+  state = jaxfusion.fuse_frame(state, frame, CAMERA, rule)
+  out = jaxfusion.read_map(state)
+  assert out["coords"].shape[0] > 0
+  assert np.all(np.isfinite(out["posterior"]))
+  np.testing.assert_allclose(out["posterior"].sum(-1), 1.0, atol=1e-4)
+  return out
+
+
+def _check_prediction(pred, *, with_var):
+  assert isinstance(pred, sources.Prediction)
+  assert pred.probs.shape == (H, W, K) and pred.probs.dtype == jnp.float32
+  np.testing.assert_allclose(np.asarray(pred.probs).sum(-1), 1.0, atol=1e-5)
+  if with_var:
+    assert pred.var.shape == (H, W, K) and float(pred.var.min()) >= 0.0
+  else:
+    assert pred.var is None
+
+
+def test_mc_dropout_source_feeds_robust_fusion(tiny, image):
+  graphdef, params = tiny
+  source = sampling.mc_dropout_source(graphdef, params, num_samples=M)
+  assert isinstance(source, sources.ProbabilitySource)
+  pred = source.predict(jax.random.key(1), image)
+  _check_prediction(pred, with_var=True)
+  assert float(pred.var.max()) > 0.0
+  # Equal to the models' own jitted sampler followed by mc_moments (same keys, same masks).
+  mean, var = jaxfusion.mc_moments(
+      sampling.mc_samples(graphdef, params, jax.random.key(1), image, num_samples=M))
+  np.testing.assert_allclose(np.asarray(pred.probs), np.asarray(mean), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(pred.var), np.asarray(var), atol=1e-6)
+  _fuse(pred, jaxfusion.rules.robust(beta=0.3))
+
+
+def test_deterministic_source_feeds_bayes_fusion_and_has_no_variance(tiny, image):
+  graphdef, params = tiny
+  source = sampling.deterministic_source(graphdef, params)
+  pred = source.predict(None, image)
+  _check_prediction(pred, with_var=False)
+  np.testing.assert_allclose(np.asarray(pred.probs),
+                             np.asarray(sampling.deterministic_probs(graphdef, params, image)),
+                             atol=1e-6)
+  _fuse(pred, jaxfusion.rules.bayes())
+
+
+def test_stochastic_source_needs_a_key(tiny, image):
+  graphdef, params = tiny
+  with pytest.raises(ValueError, match="PRNG key"):
+    sampling.mc_dropout_source(graphdef, params, num_samples=M).predict(None, image)
+
+
+def test_ensemble_source_mean_and_variance_across_members(tiny, image):
+  graphdef, params = tiny
+  members = [params] + [net.init(net.tiny_config(K), key=jax.random.key(s))[1] for s in (1, 2)]
+  source = sampling.ensemble_source(graphdef, members)
+  pred = source.predict(jax.random.key(0), image)
+  _check_prediction(pred, with_var=True)
+  each = np.stack([np.asarray(sampling.deterministic_probs(graphdef, p, image)) for p in members])
+  np.testing.assert_allclose(np.asarray(pred.probs), each.mean(0), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(pred.var), each.var(0), atol=1e-6)
+  _fuse(pred, jaxfusion.rules.robust(beta=0.3))
+
+
+def test_ensemble_source_rejects_mismatched_members(tiny):
+  graphdef, params = tiny
+  other = net.init(net.SegNetConfig(num_classes=K, stem_width=8, widths=(8,), strides=(2,),
+                                    dilations=(1,), aspp_width=8, aspp_rates=(2,),
+                                    norm_groups=4), key=jax.random.key(0))[1]
+  with pytest.raises(ValueError, match="member 1"):
+    sources.ensemble_source(sampling.deterministic_apply_fn(graphdef), [params, other])
+  with pytest.raises(ValueError, match="at least one"):
+    sources.ensemble_source(sampling.deterministic_apply_fn(graphdef), [])
+
+
+def test_segment_fn_source_with_a_plain_function():
+  """Any segment_fn works — here a hand-written 'network' with no Flax at all."""
+  def segment_fn(temperature, key, image):
+    logits = jnp.stack([image[..., 0], image[..., 1], 1.0 - image[..., 0]], -1)
+    noise = 0.1 * jax.random.normal(key, (5,) + logits.shape)
+    return jax.nn.softmax((logits[None] + noise) / temperature, axis=-1)
+
+  image = jnp.asarray(np.random.default_rng(1).random((H, W, 3)), jnp.float32)
+  source = sources.segment_fn_source(segment_fn, jnp.float32(0.5))
+  pred = source.predict(jax.random.key(0), image)
+  assert pred.probs.shape == (H, W, 3) and pred.var.shape == (H, W, 3)
+  batch = source.predict_batch(jax.random.key(0), jnp.stack([image, image]))
+  assert batch.probs.shape == (2, H, W, 3)
+  bad = sources.segment_fn_source(lambda p, k, im: im, None)
+  with pytest.raises(ValueError, match=r"\(M, H, W, K\)"):
+    bad.predict(jax.random.key(0), image)
+
+
+def test_network_source_batch_matches_single_frames(tiny, image):
+  graphdef, params = tiny
+  source = sampling.mc_dropout_source(graphdef, params, num_samples=M)
+  images = np.stack([image, image[:, ::-1]])
+  key = jax.random.key(3)
+  batch = source.predict_batch(key, images)
+  assert batch.probs.shape == (2, H, W, K) and batch.var.shape == (2, H, W, K)
+  for b, k in enumerate(jax.random.split(key, 2)):
+    single = source.predict(k, images[b])
+    np.testing.assert_allclose(np.asarray(batch.probs[b]), np.asarray(single.probs), atol=1e-5)
+
+
+def _dirichlet(rng, shape):
+  return rng.dirichlet(np.ones(K), shape).astype(np.float32)
+
+
+def test_precomputed_source_reads_mean_var_and_samples(tmp_path):
+  rng = np.random.default_rng(0)
+  mean0 = _dirichlet(rng, (H, W))
+  var0 = rng.uniform(0, 0.01, (H, W, K)).astype(np.float32)
+  samples2 = _dirichlet(rng, (M, H, W))
+  sources.save_prediction(tmp_path / "000000.npz", mean=mean0, var=var0)
+  sources.save_prediction(tmp_path / "000001.npz", mean=mean0)
+  sources.save_prediction(tmp_path / "000002.npz", samples=samples2)
+  source = sources.precomputed_source(tmp_path)
+  assert isinstance(source, sources.ProbabilitySource)
+  assert len(source) == 3
+
+  p0 = source.predict(None, None, index=0)
+  np.testing.assert_array_equal(np.asarray(p0.probs), mean0)
+  np.testing.assert_array_equal(np.asarray(p0.var), var0)
+  _fuse(p0, jaxfusion.rules.robust(beta=0.3))
+  p1 = source.predict(None, np.zeros((H, W, 3), np.uint8), index=1)
+  assert p1.var is None
+  _fuse(p1, jaxfusion.rules.bayes())
+  p2 = source.predict(None, None, index=2)
+  mean2, var2 = jaxfusion.mc_moments(samples2)
+  np.testing.assert_allclose(np.asarray(p2.probs), np.asarray(mean2), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(p2.var), np.asarray(var2), atol=1e-7)
+  _fuse(p2, jaxfusion.rules.robust(beta=0.3))
+
+
+def test_precomputed_source_channels_first_like_pytorch(tmp_path):
+  rng = np.random.default_rng(1)
+  mean = _dirichlet(rng, (H, W))
+  np.savez(tmp_path / "f0.npz", mean=np.moveaxis(mean, -1, 0))  # (K, H, W) as from torch.
+  with pytest.raises(ValueError, match="sum to 1"):
+    sources.precomputed_source(tmp_path).predict(None, None, index=0)
+  pred = sources.precomputed_source(tmp_path, channels_first=True).predict(None, None, index=0)
+  np.testing.assert_array_equal(np.asarray(pred.probs), mean)
+
+
+@pytest.mark.parametrize("arrays, match", [
+    ({"logits": np.zeros((H, W, K), np.float32)}, "expected arrays"),
+    ({"mean": np.full((H, W, K), 3.0, np.float32)}, r"\[0, 1\]"),
+    ({"mean": np.zeros((H, W, K), np.int32)}, "float"),
+    ({"mean": np.full((H, W, K), np.nan, np.float32)}, "NaN"),
+    ({"mean": np.full((H, W, K), 1 / K, np.float32),
+      "var": np.zeros((H, W, K + 1), np.float32)}, "must match"),
+    ({"mean": np.full((H, W, K), 1 / K, np.float32),
+      "samples": np.full((2, H, W, K), 1 / K, np.float32)}, "both"),
+])
+def test_precomputed_source_rejects_bad_files(tmp_path, arrays, match):
+  np.savez(tmp_path / "0.npz", **arrays)
+  with pytest.raises((ValueError, TypeError), match=match):
+    sources.precomputed_source(tmp_path).predict(None, None, index=0)
+
+
+def test_precomputed_source_errors_on_missing_and_size_mismatch(tmp_path):
+  with pytest.raises(FileNotFoundError):
+    sources.precomputed_source(tmp_path / "nowhere")
+  with pytest.raises(FileNotFoundError):
+    sources.precomputed_source(tmp_path)
+  sources.save_prediction(tmp_path / "0.npz", mean=np.full((H, W, K), 1 / K, np.float32))
+  source = sources.precomputed_source(tmp_path)
+  with pytest.raises(ValueError, match="index=i"):
+    source.predict(None, None)
+  with pytest.raises(IndexError):
+    source.predict(None, None, index=5)
+  with pytest.raises(ValueError, match="pixels"):
+    source.predict(None, np.zeros((H + 1, W, 3), np.uint8), index=0)
