@@ -1,10 +1,20 @@
 """jaxfusion: robust Bayesian semantic voxel mapping in JAX.
 
 The pipeline: camera geometry → spatial hash → map state → fusion rules → `fuse_frame` →
-readout. See README.md for a usage example and SPEC.md for the equations.
+readout → metrics. Batches, sweeps and tuning build on it (`batch`, `tune`); the synthetic
+world and real-data readers live in `jaxfusion.datasets`. See README.md and SPEC.md.
 """
 
+from jaxfusion import batch
+from jaxfusion import metrics
 from jaxfusion import rules
+from jaxfusion import sources
+from jaxfusion import tune
+from jaxfusion.batch import fuse_batch
+from jaxfusion.batch import fuse_sweep
+from jaxfusion.batch import make_mesh
+from jaxfusion.batch import rule_grid
+from jaxfusion.batch import stack_sequences
 from jaxfusion.camera import Camera
 from jaxfusion.fusion import Frame
 from jaxfusion.fusion import fuse_frame
@@ -18,11 +28,15 @@ from jaxfusion.state import MapFullWarning
 from jaxfusion.state import MapState
 from jaxfusion.state import init_map
 from jaxfusion.state import map_stats
+from jaxfusion.tune import calibration_loss
+from jaxfusion.tune import sweep_beta
+from jaxfusion.tune import tune_hparams
 
 __version__ = "0.1.0"
 
 __all__ = sorted([
-    "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "fuse_frame",
-    "fuse_sequence", "init_map", "map_stats", "mc_moments", "read_map", "rules",
-    "voxel_posteriors",
+    "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch",
+    "calibration_loss", "fuse_batch", "fuse_frame", "fuse_sequence", "fuse_sweep", "init_map",
+    "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid", "rules",
+    "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
 ])
