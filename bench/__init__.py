@@ -1,0 +1,1 @@
+"""Benchmarks of the jaxfusion engine: `python -m bench [--quick]`. See bench/RESULTS.md."""

@@ -1,0 +1,412 @@
+"""The benchmark suite: throughput per rule, scaling, scan and MC front end cost, peak memory,
+and the NumPy / Open3D peers on the same frames in the same process.
+
+Every timing is the median of `repeats` calls after one warm-up call, each ended with
+`block_until_ready`; compile time is measured separately (ahead-of-time `lower().compile()`).
+Results go to `<out_dir>/results.json` (for comparing runs) and `<out_dir>/results.md`.
+"""
+
+import dataclasses
+import json
+import os
+import pathlib
+import platform
+import resource
+import time
+from typing import Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxfusion as jf
+from bench import numpy_peer
+from bench import open3d_peer
+from bench import scene
+from jaxfusion import fusion
+from jaxfusion import hashing
+
+HEADLINE = dict(height=480, width=640, num_classes=13, rule="robust_dr")
+
+
+@dataclasses.dataclass
+class Config:
+  """What to measure. `full()` is the documented run, `quick()` a smoke run, `tiny()` a test."""
+  resolutions: tuple = ((240, 320), (480, 640))
+  classes: tuple = (7, 13, 40)
+  rules: tuple = numpy_peer.RULES
+  repeats: int = 15
+  num_frames: int = 6
+  capacity: int = 2**20
+  pixel_scaling: tuple = ((120, 160), (240, 320), (480, 640), (960, 1280))
+  capacities: tuple = (2**16, 2**18, 2**20, 2**22)
+  fills: tuple = (0.0, 0.25, 0.5, 0.7)
+  sequence_length: int = 8
+  mc_samples: tuple = (1, 8, 32)
+  peer_repeats: int = 5
+  voxel_size: float = 0.1
+
+  @classmethod
+  def full(cls):
+    return cls()
+
+  @classmethod
+  def quick(cls):
+    return cls(classes=(13,), repeats=5, num_frames=3, pixel_scaling=((120, 160), (240, 320),
+                                                                    (480, 640)),
+               capacities=(2**16, 2**20), fills=(0.0, 0.5), sequence_length=4,
+               mc_samples=(1, 8), peer_repeats=2)
+
+  @classmethod
+  def tiny(cls):
+    return cls(resolutions=((24, 32),), classes=(7,), rules=("bayes", "robust_dr"), repeats=2,
+               num_frames=2, capacity=2**12, pixel_scaling=((12, 16), (24, 32)),
+               capacities=(2**10, 2**12), fills=(0.0, 0.5), sequence_length=2,
+               mc_samples=(1, 2), peer_repeats=1)
+
+
+def machine() -> dict:
+  """The device and host the numbers were taken on."""
+  dev = jax.devices()[0]
+  try:
+    load = os.getloadavg()
+  except OSError:
+    load = None
+  cpu = platform.processor()
+  try:
+    with open("/proc/cpuinfo") as f:
+      cpu = next((l.split(":", 1)[1].strip() for l in f if l.startswith("model name")), cpu)
+  except OSError:
+    pass
+  return {
+      "platform": dev.platform, "device_kind": dev.device_kind, "cpu": cpu,
+      "cpu_count": os.cpu_count(), "load_avg_1_5_15": load, "jax": jax.__version__,
+      "numpy": np.__version__, "python": platform.python_version(),
+      "malloc_mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+      "time": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+  }
+
+
+def median_time(fn: Callable[[], object], repeats: int) -> float:
+  """Median seconds of `fn()` over `repeats` calls after one warm-up call."""
+  jax.block_until_ready(fn())
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - t0)
+  return float(np.median(times))
+
+
+class _Fuser:
+  """Keeps a donated map and feeds it frames in turn (the map is never reused after donation)."""
+
+  def __init__(self, state, frames, camera, rule, fn):
+    self.state, self.frames, self.camera, self.rule, self.fn = state, frames, camera, rule, fn
+    self.t = 0
+
+  def __call__(self):
+    self.state = self.fn(self.state, self.frames[self.t % len(self.frames)], self.camera,
+                         self.rule)
+    self.t += 1
+    return self.state
+
+
+def _memory(compiled) -> Optional[dict]:
+  try:
+    m = compiled.memory_analysis()
+  except Exception:  # pylint: disable=broad-except
+    return None
+  if m is None:
+    return None
+  return {"argument_mb": m.argument_size_in_bytes / 2**20, "temp_mb": m.temp_size_in_bytes / 2**20,
+          "output_mb": m.output_size_in_bytes / 2**20,
+          "alias_mb": m.alias_size_in_bytes / 2**20,
+          "peak_mb": (m.argument_size_in_bytes + m.temp_size_in_bytes + m.output_size_in_bytes
+                      - m.alias_size_in_bytes) / 2**20}
+
+
+def _device_frames(frames: scene.BenchFrames):
+  return [jax.device_put(frames.frame(t)) for t in range(frames.depth.shape[0])]
+
+
+def fuse_frame_row(frames, rule_name, *, capacity, repeats, voxel_size, public=True) -> dict:
+  """Compile time, per-frame time, frames/s and points/s of fuse_frame on `frames`."""
+  _, height, width, k = frames.probs.shape
+  rule = jf.rules.by_name(rule_name)
+  dev_frames = _device_frames(frames)
+  state = jf.init_map(capacity=capacity, num_classes=k, voxel_size=voxel_size, rule=rule)
+  t0 = time.perf_counter()
+  compiled = fusion._fuse_frame_jit.lower(state, dev_frames[0], frames.camera, rule).compile()  # pylint: disable=protected-access
+  compile_s = time.perf_counter() - t0
+  fn = jf.fuse_frame if public else fusion._fuse_frame_jit  # pylint: disable=protected-access
+  fuser = _Fuser(state, dev_frames, frames.camera, rule, fn)
+  seconds = median_time(fuser, repeats)
+  core_seconds = None
+  if public:
+    fuser.fn = fusion._fuse_frame_jit  # pylint: disable=protected-access
+    core_seconds = median_time(fuser, repeats)
+  points = float(np.mean(np.sum(frames.depth > 0, axis=(1, 2))))
+  return {
+      "rule": rule_name, "height": height, "width": width, "num_classes": k,
+      "capacity": capacity, "compile_s": compile_s, "ms_per_frame": 1e3 * seconds,
+      "frames_per_s": 1.0 / seconds, "points_per_s": points / seconds,
+      "core_ms_per_frame": None if core_seconds is None else 1e3 * core_seconds,
+      "core_frames_per_s": None if core_seconds is None else 1.0 / core_seconds,
+      "occupied": int(fuser.state.num_occupied), "memory": _memory(compiled),
+  }
+
+
+def numpy_row(frames, rule_name, *, repeats, voxel_size) -> dict:
+  """Per-frame time of the vectorised NumPy peer on the same frames (map kept across frames)."""
+  k = frames.probs.shape[-1]
+  peer = numpy_peer.NumpyMap(k, rule_name, voxel_size=voxel_size)
+  t = [0]
+
+  def step():
+    i = t[0] % frames.depth.shape[0]
+    peer.fuse(frames.depth[i], frames.poses[i], frames.probs[i], frames.var[i], frames.camera)
+    t[0] += 1
+
+  seconds = median_time(step, repeats)
+  return {"rule": rule_name, "ms_per_frame": 1e3 * seconds, "frames_per_s": 1.0 / seconds}
+
+
+def _filled_state(capacity, fill, num_classes, rule, voxel_size, seed=0):
+  """A map whose hash table holds `fill · capacity` random far-away voxels."""
+  state = jf.init_map(capacity=capacity, num_classes=num_classes, voxel_size=voxel_size,
+                      rule=rule)
+  count = int(fill * capacity)
+  if count == 0:
+    return state
+  rng = np.random.default_rng(seed)
+  keys = rng.integers(-10**6, 10**6, (count, 3)).astype(np.int32)
+  keys[:, 2] = 10**6 + np.arange(count)        # distinct, and far from the room
+  insert = jax.jit(lambda t, c, k: hashing.insert(t, c, k, jnp.ones(k.shape[0], bool),
+                                                  max_probes=capacity))
+  table, claims = state.keys, state.claims
+  chunk = 2**16
+  for start in range(0, count, chunk):
+    part = keys[start:start + chunk]
+    if len(part) < chunk:
+      part = np.concatenate([part, np.repeat(part[-1:], chunk - len(part), 0)])
+      part[len(keys[start:start + chunk]):, 2] = -1 - np.arange(chunk - len(keys[start:]))
+    res = insert(table, claims, jnp.asarray(part))
+    table, claims = res.table, res.claims
+  occupied = int(jnp.sum(table[:, 0] != hashing.EMPTY))
+  return state.replace(keys=table, claims=claims, num_occupied=jnp.asarray(occupied, jnp.int32))
+
+
+def capacity_rows(frames, config) -> list:
+  rows = []
+  rule = jf.rules.by_name(HEADLINE["rule"])
+  k = frames.probs.shape[-1]
+  dev_frames = _device_frames(frames)
+  for capacity in config.capacities:
+    for fill in config.fills:
+      state = _filled_state(capacity, fill, k, rule, config.voxel_size)
+      fuser = _Fuser(state, dev_frames, frames.camera, rule,
+                     fusion._fuse_frame_jit)  # pylint: disable=protected-access
+      seconds = median_time(fuser, config.repeats)
+      rows.append({"capacity": capacity, "fill": fill,
+                   "load_after": int(fuser.state.num_occupied) / capacity,
+                   "dropped": int(fuser.state.num_dropped), "ms_per_frame": 1e3 * seconds})
+      del fuser, state
+  return rows
+
+
+def pixel_rows(config) -> list:
+  rows = []
+  for height, width in config.pixel_scaling:
+    frames = scene.make_frames(config.num_frames, height=height, width=width,
+                               num_classes=HEADLINE["num_classes"], seed=3)
+    row = fuse_frame_row(frames, HEADLINE["rule"], capacity=config.capacity,
+                         repeats=config.repeats, voxel_size=config.voxel_size, public=False)
+    row["pixels"] = height * width
+    rows.append(row)
+  return rows
+
+
+def sequence_row(frames, config) -> dict:
+  rule = jf.rules.by_name(HEADLINE["rule"])
+  k = frames.probs.shape[-1]
+  stacked = jax.device_put(frames.stacked())
+  holder = {"state": jf.init_map(capacity=config.capacity, num_classes=k,
+                                 voxel_size=config.voxel_size, rule=rule)}
+
+  def step():
+    holder["state"] = fusion._fuse_sequence_jit(  # pylint: disable=protected-access
+        holder["state"], stacked, frames.camera, rule)
+    return holder["state"]
+
+  t0 = time.perf_counter()
+  jax.block_until_ready(step())
+  first = time.perf_counter() - t0
+  seconds = median_time(step, max(2, config.repeats // 3))
+  length = frames.depth.shape[0]
+  return {"frames": length, "first_call_s": first, "ms_per_frame": 1e3 * seconds / length,
+          "frames_per_s": length / seconds}
+
+
+def mc_rows(config, height, width) -> list:
+  rows = []
+  k = HEADLINE["num_classes"]
+  rng = np.random.default_rng(0)
+  moments = jax.jit(jf.mc_moments)
+  for m in config.mc_samples:
+    logits = rng.normal(size=(m, height, width, k)).astype(np.float32)
+    samples = jax.device_put(jax.nn.softmax(jnp.asarray(logits), axis=-1))
+    seconds = median_time(lambda s=samples: moments(s), config.repeats)
+    rows.append({"M": m, "height": height, "width": width, "num_classes": k,
+                 "ms_per_frame": 1e3 * seconds})
+    del samples
+  return rows
+
+
+def run(config: Config, *, out_dir, log=print) -> dict:
+  """Runs every measurement of `config` and writes results.json / results.md to `out_dir`."""
+  out_dir = pathlib.Path(out_dir)
+  out_dir.mkdir(parents=True, exist_ok=True)
+  results = {"machine": machine(), "device": jax.devices()[0].device_kind,
+             "config": dataclasses.asdict(config), "throughput": [], "numpy_peer": [],
+             "open3d_peer": None}
+  headline_frames = None
+  for height, width in config.resolutions:
+    for k in config.classes:
+      frames = scene.make_frames(config.num_frames, height=height, width=width, num_classes=k)
+      for rule_name in config.rules:
+        row = fuse_frame_row(frames, rule_name, capacity=config.capacity,
+                             repeats=config.repeats, voxel_size=config.voxel_size)
+        results["throughput"].append(row)
+        log(f"fuse_frame {rule_name:10s} {height}x{width} K={k}: {row['ms_per_frame']:.2f} ms "
+            f"({row['frames_per_s']:.1f} frames/s; core {row['core_ms_per_frame']:.2f} ms), "
+            f"compile {row['compile_s']:.2f} s")
+      if (height, width, k) == (config.resolutions[-1] + (max(config.classes),)) or (
+          (height, width) == config.resolutions[-1] and k == HEADLINE["num_classes"]):
+        headline_frames = frames
+  if headline_frames is None:
+    headline_frames = frames
+  # Peers on the same frames, one after the other, in this process.
+  for rule_name in config.rules:
+    row = numpy_row(headline_frames, rule_name, repeats=config.peer_repeats,
+                    voxel_size=config.voxel_size)
+    results["numpy_peer"].append(row)
+    log(f"numpy peer {rule_name:10s}: {row['ms_per_frame']:.1f} ms")
+  results["open3d_peer"] = open3d_peer.measure(headline_frames, voxel_size=config.voxel_size,
+                                               repeats=config.peer_repeats)
+  log(f"open3d peer: {results['open3d_peer']}")
+  results["headline_shape"] = list(headline_frames.probs.shape[1:])
+  results["pixels"] = pixel_rows(config)
+  log("pixel scaling: " + ", ".join(f"{r['pixels']}: {r['ms_per_frame']:.2f} ms"
+                                    for r in results["pixels"]))
+  results["capacity"] = capacity_rows(headline_frames, config)
+  log("capacity scaling: " + ", ".join(
+      f"2^{int(np.log2(r['capacity']))}@{r['fill']:.2f}: {r['ms_per_frame']:.2f} ms"
+      for r in results["capacity"]))
+  seq_frames = scene.make_frames(config.sequence_length, height=headline_frames.depth.shape[1],
+                                 width=headline_frames.depth.shape[2],
+                                 num_classes=headline_frames.probs.shape[-1], seed=5)
+  results["sequence"] = sequence_row(seq_frames, config)
+  log(f"fuse_sequence: {results['sequence']}")
+  results["mc_moments"] = mc_rows(config, *headline_frames.depth.shape[1:])
+  log(f"mc_moments: {results['mc_moments']}")
+  results["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+  (out_dir / "results.json").write_text(json.dumps(results, indent=1))
+  (out_dir / "results.md").write_text(to_markdown(results))
+  try:
+    plot(results, out_dir / "scaling.png")
+  except ImportError:
+    pass
+  return results
+
+
+def _ratio(a, b):
+  return f"{a / b:.1f}×" if a and b else "—"
+
+
+def to_markdown(results: dict) -> str:
+  """The tables of RESULTS.md from a results dict."""
+  m = results["machine"]
+  lines = [f"Device: **{m['device_kind']}** ({m['platform']}), {m['cpu_count']} CPUs "
+           f"({m['cpu']}), load average {m['load_avg_1_5_15']}, jax {m['jax']}, "
+           f"MALLOC_MMAP_THRESHOLD_={m['malloc_mmap_threshold']}, {m['time']}.", ""]
+  lines += ["### fuse_frame throughput (median per frame; `public` includes the host-side input "
+            "checks of `fuse_frame`, `core` is the jitted step alone)", "",
+            "| rule | H×W | K | compile s | public ms | public frames/s | core ms | core frames/s "
+            "| Mpoints/s | XLA peak MB |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+  for r in results["throughput"]:
+    peak = r["memory"]["peak_mb"] if r.get("memory") else float("nan")
+    lines.append(f"| {r['rule']} | {r['height']}×{r['width']} | {r['num_classes']} | "
+                 f"{r['compile_s']:.2f} | {r['ms_per_frame']:.2f} | {r['frames_per_s']:.1f} | "
+                 f"{r['core_ms_per_frame']:.2f} | {r['core_frames_per_s']:.1f} | "
+                 f"{r['points_per_s'] / 1e6:.1f} | {peak:.0f} |")
+  h, w, k = results["headline_shape"]
+  lines += ["", f"### Peers on the same {h}×{w}, K = {k} frames, same process", "",
+            "| rule | jaxfusion core ms | NumPy peer ms | speed-up vs NumPy |", "|---|---|---|---|"]
+  core = {r["rule"]: r["core_ms_per_frame"] for r in results["throughput"]
+          if (r["height"], r["width"], r["num_classes"]) == (h, w, k)}
+  for r in results["numpy_peer"]:
+    c = core.get(r["rule"])
+    lines.append(f"| {r['rule']} | {c:.2f} | {r['ms_per_frame']:.1f} | "
+                 f"{_ratio(r['ms_per_frame'], c)} |")
+  o3d = results["open3d_peer"]
+  if o3d and o3d.get("ms_per_frame"):
+    c = core.get(HEADLINE["rule"])
+    lines += ["", f"Open3D {o3d['version']} `{o3d['method']}` (CPU, TSDF, voxel "
+              f"{o3d['voxel_size']} m, {o3d['detail']}): **{o3d['ms_per_frame']:.2f} ms** per "
+              f"frame; jaxfusion D+R core / Open3D = {c / o3d['ms_per_frame']:.2f}."]
+  else:
+    lines += ["", f"Open3D: {o3d.get('status') if o3d else 'not measured'}."]
+  lines += ["", "### Cost against pixels per frame (D+R, K = 13, core)", "",
+            "| pixels | ms | ns / pixel |", "|---|---|---|"]
+  for r in results["pixels"]:
+    lines.append(f"| {r['pixels']} | {r['ms_per_frame']:.2f} | "
+                 f"{1e6 * r['ms_per_frame'] / r['pixels']:.1f} |")
+  lines += ["", "### Cost against map capacity and fill (D+R, headline frames, core)", "",
+            "| capacity | fill before | load after | ms |", "|---|---|---|---|"]
+  for r in results["capacity"]:
+    lines.append(f"| 2^{int(np.log2(r['capacity']))} | {r['fill']:.2f} | "
+                 f"{r['load_after']:.3f} | {r['ms_per_frame']:.2f} |")
+  s = results["sequence"]
+  lines += ["", f"### fuse_sequence (scan of {s['frames']} frames, D+R): "
+            f"{s['ms_per_frame']:.2f} ms per frame ({s['frames_per_s']:.1f} frames/s; first call "
+            f"incl. compile {s['first_call_s']:.1f} s)", "",
+            "### MC front end: `mc_moments` per frame", "", "| M | ms |", "|---|---|"]
+  for r in results["mc_moments"]:
+    lines.append(f"| {r['M']} | {r['ms_per_frame']:.2f} |")
+  lines += ["", f"Process peak RSS: {results['max_rss_mb']:.0f} MB.", ""]
+  return "\n".join(lines)
+
+
+def plot(results: dict, path) -> None:
+  """Two panels: ms against pixels (linear?) and against capacity per fill (flat?)."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+  px = [r["pixels"] for r in results["pixels"]]
+  ms = [r["ms_per_frame"] for r in results["pixels"]]
+  a.plot(px, ms, "o-", label="D+R, K=13")
+  if px:
+    a.plot(px, [ms[-1] * p / px[-1] for p in px], "--", color="gray", label="linear")
+  a.set_xlabel("pixels per frame")
+  a.set_ylabel("ms per frame")
+  a.set_xscale("log")
+  a.set_yscale("log")
+  a.legend()
+  a.set_title("cost vs pixels")
+  for fill in sorted({r["fill"] for r in results["capacity"]}):
+    rows = [r for r in results["capacity"] if r["fill"] == fill]
+    b.plot([r["capacity"] for r in rows], [r["ms_per_frame"] for r in rows], "o-",
+           label=f"fill {fill:.2f}")
+  b.set_xscale("log", base=2)
+  b.set_ylim(bottom=0)
+  b.set_xlabel("map capacity (slots)")
+  b.set_ylabel("ms per frame")
+  b.set_title("cost vs capacity and fill")
+  b.legend()
+  fig.suptitle(f"jaxfusion fuse_frame on {results['device']}")
+  fig.tight_layout()
+  fig.savefig(path, dpi=100)
+  plt.close(fig)

@@ -1,0 +1,45 @@
+"""The benchmark code runs on a tiny configuration, and its NumPy peer fuses as the engine does.
+
+No timings are asserted here: `python -m bench` measures them (bench/RESULTS.md).
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxfusion as jf
+from bench import numpy_peer
+from bench import scene
+from tests import engine_helpers
+
+
+@pytest.mark.parametrize("rule_name", numpy_peer.RULES)
+@pytest.mark.parametrize("aggregate", ["sum", "mean"])
+def test_numpy_peer_matches_the_engine(rule_name, aggregate):
+  frames = scene.make_frames(3, height=24, width=32, num_classes=7, seed=1)
+  # Pixels within float rounding of a voxel face could land in different voxels in XLA and NumPy.
+  for t in range(3):
+    frames.depth[t] = engine_helpers.drop_ambiguous_pixels(
+        frames.depth[t], frames.poses[t], frames.camera, 0.25)
+  rule = jf.rules.by_name(rule_name, aggregate=aggregate)
+  state = jf.init_map(capacity=2**12, num_classes=7, voxel_size=0.25, rule=rule)
+  peer = numpy_peer.NumpyMap(7, rule_name, voxel_size=0.25, aggregate=aggregate)
+  for t in range(3):
+    state = jf.fuse_frame(state, frames.frame(t), frames.camera, rule)
+    peer.fuse(frames.depth[t], frames.poses[t], frames.probs[t], frames.var[t], frames.camera)
+  out = jf.read_map(state)
+  keys, posterior = peer.posteriors()
+  order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
+  np.testing.assert_array_equal(out["coords"], keys[order])
+  np.testing.assert_allclose(out["posterior"], posterior[order], rtol=2e-3, atol=2e-5)
+  np.testing.assert_array_equal(out["hits"], peer.hits[:peer.size][order])
+
+
+def test_bench_suite_runs_on_a_tiny_configuration(tmp_path):
+  from bench import suite  # pylint: disable=import-outside-toplevel
+  results = suite.run(suite.Config.tiny(), out_dir=tmp_path)
+  data = json.loads((tmp_path / "results.json").read_text())
+  assert data["throughput"] and data["device"]
+  assert (tmp_path / "results.md").exists()
+  assert results["throughput"][0]["frames_per_s"] > 0
