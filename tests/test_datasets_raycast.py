@@ -88,12 +88,15 @@ def test_rendered_depth_backprojects_onto_the_surfaces():
     assert np.all(err <= 6 * sigma + 1e-3)
 
 
-def test_frustum_culling_does_not_change_the_image():
-  world = synthetic.make_scene("house", seed=1)
+@pytest.mark.parametrize("env,trajectory", [("house", 2), ("office", 0)])
+def test_tiled_cast_equals_casting_against_everything(env, trajectory):
+  world = synthetic.make_scene(env, seed=1)
   cam = synthetic.default_camera(H, W)
-  T = trajectories.trajectory(world.layout.room, 2, 4)[1]
-  a = synthetic.render(world, T, cam, height=H, width=W, cull=False)
-  b = synthetic.render(world, T, cam, height=H, width=W, cull=True)
-  np.testing.assert_array_equal(a.labels, b.labels)
-  np.testing.assert_array_equal(a.instances, b.instances)
-  np.testing.assert_allclose(a.depth, b.depth, rtol=1e-6)
+  packed = raycast.pack(world.primitives)
+  for T in trajectories.trajectory(world.layout.room, trajectory, 3):
+    tiles = raycast.tile_lists(packed, T, cam, height=H, width=W, tile=8)
+    assert raycast.list_sizes(tiles)[0] < packed.boxes.index.shape[0]  # tiles do cull
+    a = raycast.cast(packed, T, cam, height=H, width=W)
+    b = raycast.cast(packed, T, cam, height=H, width=W, tiles=tiles, tile=8)
+    np.testing.assert_array_equal(np.asarray(a.prim), np.asarray(b.prim))
+    np.testing.assert_allclose(np.asarray(a.depth), np.asarray(b.depth), rtol=1e-5)

@@ -70,7 +70,7 @@ class Hits(NamedTuple):
 
 
 def _bucket(n: int, step: int) -> int:
-  return max(step, -(-n // step) * step)
+  return -(-n // step) * step
 
 
 def _kind_table(primitives: Primitives, kind: int, size: int) -> KindTable:
@@ -108,7 +108,7 @@ def pack(primitives: Primitives, *, step: int = 32) -> PackedScene:
     raise ValueError("primitives need positive half sizes")
   tables = [_kind_table(primitives, k, _bucket(c, step if k != PLANE else 8))
             for k, c in zip((BOX, CYLINDER, SPHERE, PLANE), counts)]
-  total = _bucket(len(primitives), step)
+  total = max(step, _bucket(len(primitives), step))
   pad = total - len(primitives)
 
   def padded(x, fill):
@@ -178,21 +178,121 @@ def _hit_planes(o, d):
 _HIT_FNS = (_hit_boxes, _hit_cylinders, _hit_spheres, _hit_planes)
 
 
-def _nearest(table: KindTable, hit_fn, origin, dirs):
-  """Nearest hit of rays `dirs (N, 3)` from `origin (3,)` among one kind's primitives."""
-  o_local = jnp.einsum("pij,pj->pi", table.inv_frame, origin[None] - table.center)  # (P_k, 3)
-  d_local = jnp.einsum("pij,nj->npi", table.inv_frame, dirs)  # (N, P_k, 3)
+class TileLists(NamedTuple):
+  """Candidate primitives per screen tile, one array per kind.
+
+  Each field is `(num_tiles, K_k) int32`: rows of that kind's `KindTable` whose screen bounds
+  overlap the tile, padded with -1. Tiles are `tile × tile` pixels in row-major order.
+  """
+  boxes: np.ndarray
+  cylinders: np.ndarray
+  spheres: np.ndarray
+  planes: np.ndarray
+
+
+def screen_bounds(primitives: Primitives, T_world_cam, camera: Camera) -> np.ndarray:
+  """Conservative pixel bounds of every primitive's projection.
+
+  Args:
+    primitives: the table.
+    T_world_cam: `(4, 4)` pose.
+    camera: intrinsics.
+
+  Returns:
+    `(P, 4) float64` `[u_min, u_max, v_min, v_max]`: the whole plane for planes and for
+    primitives that straddle the camera plane, an empty box for primitives behind the camera.
+  """
+  T = np.asarray(T_world_cam, np.float64)
+  corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+  local = corners[None] * primitives.half_size.astype(np.float64)[:, None, :]
+  p_world = primitives.center[:, None, :] + np.einsum("pij,pcj->pci",
+                                                      primitives.rotation.astype(np.float64),
+                                                      local)
+  p_cam = (p_world - T[:3, 3]) @ T[:3, :3]
+  z = p_cam[..., 2]
+  zs = np.maximum(z, 1e-6)
+  u = camera.fx * p_cam[..., 0] / zs + camera.cx
+  v = camera.fy * p_cam[..., 1] / zs + camera.cy
+  bounds = np.stack([u.min(1), u.max(1), v.min(1), v.max(1)], -1)
+  everywhere = np.array([-np.inf, np.inf, -np.inf, np.inf])
+  nowhere = np.array([np.inf, -np.inf, np.inf, -np.inf])
+  straddles = (z.min(1) <= NEAR) | (primitives.kind == PLANE)
+  behind = (z.max(1) <= NEAR) & (primitives.kind != PLANE)
+  bounds = np.where(straddles[:, None], everywhere, bounds)
+  return np.where(behind[:, None], nowhere, bounds)
+
+
+def _pow2_at_least(n: int) -> int:
+  return 0 if n == 0 else max(8, 1 << (int(n) - 1).bit_length())
+
+
+def tile_lists(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, width: int,
+               tile: int = 16, min_sizes=(0, 0, 0, 0)) -> TileLists:
+  """Per-tile candidate lists for `cast` (host-side NumPy).
+
+  Args:
+    scene: output of `pack`.
+    T_world_cam: `(4, 4)` pose.
+    camera: intrinsics.
+    height: image rows H.
+    width: image columns W.
+    tile: tile edge in pixels.
+    min_sizes: lower bounds of the per-kind list lengths; pass the maximum over a sequence to
+      give every frame the same shapes (one compilation).
+
+  Returns:
+    `TileLists` whose lengths are powers of two (≥ 8, or 0 for a kind no tile sees).
+  """
+  prims = Primitives(*(np.asarray(x) for x in scene.prims))
+  bounds = screen_bounds(prims, T_world_cam, camera)
+  ty = np.arange(-(-height // tile)) * tile
+  tx = np.arange(-(-width // tile)) * tile
+  lists = []
+  for table, min_size in zip(scene[:4], min_sizes):
+    rows = np.asarray(table.index)
+    b = bounds[np.maximum(rows, 0)]
+    over_u = (b[None, :, 1] >= tx[:, None] - 1) & (b[None, :, 0] <= tx[:, None] + tile)
+    over_v = (b[None, :, 3] >= ty[:, None] - 1) & (b[None, :, 2] <= ty[:, None] + tile)
+    mask = (over_v[:, None, :] & over_u[None, :, :]).reshape(len(ty) * len(tx), -1)
+    mask &= rows[None] >= 0
+    size = _pow2_at_least(max(int(mask.sum(1).max(initial=0)), int(min_size)))
+    order = np.argsort(~mask, axis=1, kind="stable")[:, :size]
+    picked = np.take_along_axis(mask, order, axis=1)
+    out = np.full((mask.shape[0], size), -1, np.int32)
+    out[:, :order.shape[1]] = np.where(picked, order, -1)
+    lists.append(out)
+  return TileLists(*lists)
+
+
+def list_sizes(lists: TileLists) -> tuple:
+  """The per-kind list lengths `(K_box, K_cyl, K_sph, K_plane)` of a `TileLists`."""
+  return tuple(int(x.shape[1]) for x in lists)
+
+
+def _nearest(center, inv_frame, index, hit_fn, origin, dirs):
+  """Nearest hit of rays `dirs (N, 3)` from `origin (3,)` among `K` primitives of one kind.
+
+  `center (K, 3)`, `inv_frame (K, 3, 3)`, `index (K,)` (row in the full table, -1 = none).
+  """
+  o_local = jnp.einsum("pij,pj->pi", inv_frame, origin[None] - center)  # (K, 3)
+  d_local = jnp.einsum("pij,nj->npi", inv_frame, dirs)  # (N, K, 3)
   t = hit_fn(o_local[None], d_local)
-  t = jnp.where(table.index[None] >= 0, t, jnp.inf)
+  t = jnp.where(index[None] >= 0, t, jnp.inf)
   arg = jnp.argmin(t, axis=-1)
-  return jnp.take_along_axis(t, arg[:, None], axis=-1)[:, 0], table.index[arg]
+  return jnp.take_along_axis(t, arg[:, None], axis=-1)[:, 0], index[arg]
 
 
-def _first_hits(scene: PackedScene, origin, dirs):
-  """`(t (N,), prim (N,))` of the nearest hit over all kinds; prim = -1 where none."""
-  ts, idx = [], []
-  for table, fn in zip(scene[:4], _HIT_FNS):
-    t, i = _nearest(table, fn, origin, dirs)
+def _first_hits(tables, origin, dirs):
+  """`(t (N,), prim (N,))` of the nearest hit over all kinds; prim = -1 where none.
+
+  `tables` holds one `(center, inv_frame, index)` triple per kind (in `_HIT_FNS` order).
+  """
+  ts = [jnp.full(dirs.shape[:1], jnp.inf)]
+  idx = [jnp.full(dirs.shape[:1], -1, jnp.int32)]
+  for (center, inv_frame, index), fn in zip(tables, _HIT_FNS):
+    if index.shape[0] == 0:
+      continue
+    t, i = _nearest(center, inv_frame, index, fn, origin, dirs)
     ts.append(t)
     idx.append(i)
   ts = jnp.stack(ts, axis=-1)
@@ -214,19 +314,58 @@ def pixel_rays(T_world_cam, camera: Camera, height: int, width: int):
     width: image columns W.
 
   Returns:
-    `(origin (3,), dirs (H·W, 3))` float32, with `dirs` scaled so that its camera-frame z is 1.
+    `(origin (3,), dirs (H, W, 3))` float32, with `dirs` scaled so that its camera-frame z is 1.
   """
   T = jnp.asarray(T_world_cam, jnp.float32)
   u = jnp.arange(width, dtype=jnp.float32)[None, :]
   v = jnp.arange(height, dtype=jnp.float32)[:, None]
   x = jnp.broadcast_to((u - camera.cx) / camera.fx, (height, width))
   y = jnp.broadcast_to((v - camera.cy) / camera.fy, (height, width))
-  d_cam = jnp.stack([x, y, jnp.ones_like(x)], axis=-1).reshape(-1, 3)
+  d_cam = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)
   return T[:3, 3], d_cam @ T[:3, :3].T
 
 
-@functools.partial(jax.jit, static_argnames=("height", "width"))
-def cast(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, width: int) -> Hits:
+def _cast_all(scene: PackedScene, origin, dirs):
+  """Every ray against every primitive, in chunks of `_CHUNK` rays."""
+  n = dirs.shape[0]
+  chunk = min(_CHUNK, n)
+  num_chunks = -(-n // chunk)
+  padded = jnp.concatenate([dirs, jnp.tile(dirs[:1], (num_chunks * chunk - n, 1))])
+  tables = [(t.center, t.inv_frame, t.index) for t in scene[:4]]
+  t, prim = jax.lax.map(lambda ds: _first_hits(tables, origin, ds),
+                        padded.reshape(num_chunks, chunk, 3))
+  return t.reshape(-1)[:n], prim.reshape(-1)[:n]
+
+
+def _cast_tiled(scene: PackedScene, tiles: TileLists, origin, dirs_img, tile: int):
+  """Rays of each screen tile against that tile's candidate primitives only."""
+  height, width = dirs_img.shape[:2]
+  nty, ntx = -(-height // tile), -(-width // tile)
+  padded = jnp.pad(dirs_img, ((0, nty * tile - height), (0, ntx * tile - width), (0, 0)),
+                   mode="edge")
+  rays = padded.reshape(nty, tile, ntx, tile, 3).transpose(0, 2, 1, 3, 4)
+  rays = rays.reshape(nty * ntx, tile * tile, 3)
+  per_tile = []
+  for table, rows in zip(scene[:4], tiles):
+    rows = jnp.asarray(rows)
+    r = jnp.maximum(rows, 0)
+    index = jnp.where(rows >= 0, table.index[r], -1) if rows.shape[1] else rows
+    per_tile.append((table.center[r], table.inv_frame[r], index))
+
+  def one_tile(args):
+    tables, ds = args
+    return _first_hits(tables, origin, ds)
+
+  batch = max(1, _CHUNK // (tile * tile))
+  t, prim = jax.lax.map(one_tile, (per_tile, rays), batch_size=batch)
+  unflat = lambda x: x.reshape(nty, ntx, tile, tile).transpose(0, 2, 1, 3).reshape(
+      nty * tile, ntx * tile)[:height, :width].reshape(-1)
+  return unflat(t), unflat(prim)
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width", "tile"))
+def cast(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, width: int,
+         tiles=None, tile: int = 16) -> Hits:
   """Casts one ray per pixel into the scene.
 
   Args:
@@ -235,19 +374,20 @@ def cast(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, width:
     camera: intrinsics.
     height: image rows H (static).
     width: image columns W (static).
+    tiles: optional `TileLists` from `tile_lists` for this pose: each `tile × tile` block of
+      pixels is then tested only against the primitives that may project into it (the same
+      image, several times faster). None tests every ray against every primitive.
+    tile: the tile edge the lists were made for (static).
 
   Returns:
     `Hits` with `(H, W, ...)` arrays; `depth` is z-depth along the optical axis.
   """
-  origin, dirs = pixel_rays(T_world_cam, camera, height, width)
-  n = height * width
-  chunk = min(_CHUNK, n)
-  num_chunks = -(-n // chunk)
-  padded = jnp.concatenate([dirs, jnp.tile(dirs[:1], (num_chunks * chunk - n, 1))])
-  t, prim = jax.lax.map(lambda ds: _first_hits(scene, origin, ds),
-                        padded.reshape(num_chunks, chunk, 3))
-  t = t.reshape(-1)[:n]
-  prim = prim.reshape(-1)[:n]
+  origin, dirs_img = pixel_rays(T_world_cam, camera, height, width)
+  dirs = dirs_img.reshape(-1, 3)
+  if tiles is None:
+    t, prim = _cast_all(scene, origin, dirs)
+  else:
+    t, prim = _cast_tiled(scene, tiles, origin, dirs_img, tile)
   hit = prim >= 0
   g = jnp.maximum(prim, 0)
   p = scene.prims

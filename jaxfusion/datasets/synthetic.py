@@ -24,15 +24,15 @@ import numpy as np
 from jaxfusion.camera import Camera
 from jaxfusion.datasets import appearance, raycast, scene, sensor, trajectories
 from jaxfusion.datasets.classes import BACKGROUND, CLASS_NAMES
-from jaxfusion.datasets.primitives import PLANE, Primitives
+from jaxfusion.datasets.primitives import Primitives
 from jaxfusion.datasets.sequence import RGBDFrame, RGBDSequence
 
 ENVIRONMENTS = scene.ENVIRONMENTS
 NUM_TRAJECTORIES = 3
 # Horizontal field of view of the synthetic camera: fx = FOCAL_FACTOR · W (≈ 79°).
 FOCAL_FACTOR = 0.6
-# Frustum culling pays off above this many pixels (below, compiles would cost more than casts).
-CULL_MIN_PIXELS = 100_000
+# Screen tiles of the ray caster: each tile × tile block is cast against its own candidates.
+TILE = 16
 
 
 class SyntheticScene(NamedTuple):
@@ -83,30 +83,6 @@ def make_scene(env: str, *, seed: int = 0, domain: str = "test", shift: float = 
   return SyntheticScene(layout, prims, light, domain, float(shift))
 
 
-def _visible(prims: Primitives, T_world_cam, camera: Camera, height: int, width: int):
-  """`(P,) bool`: primitives whose bounding sphere may intersect the view frustum."""
-  T = np.asarray(T_world_cam, np.float64)
-  p_cam = (prims.center.astype(np.float64) - T[:3, 3]) @ T[:3, :3]
-  radius = np.linalg.norm(prims.half_size.astype(np.float64), axis=-1)
-  keep = p_cam[:, 2] > -radius
-  # Side planes of the frustum through the image borders (normals point outwards).
-  for a, b, c, f in ((-0.5 - camera.cx, 1.0, 0, camera.fx), (width - 0.5 - camera.cx, -1.0, 0,
-                                                                 camera.fx),
-                     (-0.5 - camera.cy, 1.0, 1, camera.fy), (height - 0.5 - camera.cy, -1.0, 1,
-                                                             camera.fy)):
-    # Plane through the origin containing the border ray (a/f along axis c, 1 along z).
-    normal = np.zeros(3)
-    normal[c] = -b
-    normal[2] = b * a / f
-    normal /= np.linalg.norm(normal)
-    keep &= p_cam @ normal < radius
-  return keep | (prims.kind == PLANE)
-
-
-def _subset(prims: Primitives, keep) -> Primitives:
-  return Primitives(*(x[keep] for x in prims))
-
-
 @jax.jit
 def _shade(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Lighting):
   p = packed.prims
@@ -120,7 +96,7 @@ def _shade(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Li
 
 
 def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, height: int,
-           width: int, realism: bool = False, key=None, cull=None) -> RGBDFrame:
+           width: int, realism: bool = False, key=None, tile_sizes=(0, 0, 0, 0)) -> RGBDFrame:
   """Renders one frame of a synthetic scene.
 
   Args:
@@ -131,22 +107,19 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
     width: image columns W.
     realism: add sensor depth noise/holes and image blur/noise (labels stay exact).
     key: PRNG key for the realism noise (default `PRNGKey(0)`).
-    cull: skip primitives outside the view frustum before casting (same image; faster for
-      large images, but the per-kind table sizes then vary per view and may recompile). The
-      default culls for images of more than `CULL_MIN_PIXELS` pixels.
+    tile_sizes: lower bounds of the per-tile candidate list lengths (see
+      `raycast.tile_lists`); give the maximum over a trajectory to compile once for all
+      of its frames.
 
   Returns:
     `RGBDFrame` with `rgb (H, W, 3) uint8`, `depth (H, W) float32`, `labels`/`instances`
     `(H, W) int32`.
   """
-  prims = synthetic_scene.primitives
-  if cull is None:
-    cull = height * width > CULL_MIN_PIXELS
-  if cull:
-    prims = _subset(prims, _visible(prims, T_world_cam, camera, height, width))
-  packed = raycast.pack(prims)
+  packed = raycast.pack(synthetic_scene.primitives)
   T = np.asarray(T_world_cam, np.float32)
-  hits = raycast.cast(packed, T, camera, height=height, width=width)
+  tiles = raycast.tile_lists(packed, T, camera, height=height, width=width, tile=TILE,
+                             min_sizes=tile_sizes)
+  hits = raycast.cast(packed, T, camera, height=height, width=width, tiles=tiles, tile=TILE)
   rgb = _shade(packed, hits, synthetic_scene.lighting)
   depth = hits.depth
   if realism:
@@ -158,6 +131,15 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
   return RGBDFrame(rgb=rgb8, depth=np.asarray(depth, np.float32), T_world_cam=T, camera=camera,
                    labels=np.asarray(hits.label, np.int32),
                    instances=np.asarray(hits.instance, np.int32))
+
+
+def trajectory_tile_sizes(synthetic_scene: SyntheticScene, poses, camera: Camera, *,
+                          height: int, width: int) -> tuple:
+  """The largest per-tile candidate list lengths over a set of poses (for `render`)."""
+  packed = raycast.pack(synthetic_scene.primitives)
+  sizes = [raycast.list_sizes(raycast.tile_lists(packed, T, camera, height=height, width=width,
+                                                 tile=TILE)) for T in poses]
+  return tuple(int(x) for x in np.max(np.array(sizes).reshape(-1, 4), axis=0))
 
 
 def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames: int = 60,
@@ -188,8 +170,9 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
   camera = default_camera(height, width)
   poses = trajectories.trajectory(world.layout.room, trajectory, num_frames)
   keys = jax.random.split(jax.random.PRNGKey(seed * 7 + trajectory), num_frames)
-  frames = [render(world, T, camera, height=height, width=width, realism=realism, key=k)
-            for T, k in zip(poses, keys)]
+  sizes = trajectory_tile_sizes(world, poses, camera, height=height, width=width)
+  frames = [render(world, T, camera, height=height, width=width, realism=realism, key=k,
+                   tile_sizes=sizes) for T, k in zip(poses, keys)]
   return RGBDSequence(
       name=f"{env}_{trajectory}_{domain}", class_names=CLASS_NAMES, camera=camera,
       rgb=np.stack([f.rgb for f in frames]), depth=np.stack([f.depth for f in frames]),
