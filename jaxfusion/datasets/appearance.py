@@ -187,9 +187,14 @@ def lighting(room_size, u, s: float) -> Lighting:
 
 
 def _hash3(cell):
-  """Pseudo-random `[0, 1)` value per integer cell `(..., 3)`."""
-  x = jnp.sum(cell * jnp.array([12.9898, 78.233, 37.719]), axis=-1)
-  return jnp.mod(jnp.sin(jnp.mod(x, 6283.1853)) * 43758.5453, 1.0)
+  """Pseudo-random `[0, 1)` value per integer cell `(..., 3)` (integer mixing, no trig)."""
+  c = cell.astype(jnp.int32).astype(jnp.uint32)
+  h = (c[..., 0] * jnp.uint32(73856093)) ^ (c[..., 1] * jnp.uint32(19349663)) ^ (
+      c[..., 2] * jnp.uint32(83492791))
+  h = (h ^ (h >> 15)) * jnp.uint32(0x2C1B3C6D)
+  h = (h ^ (h >> 12)) * jnp.uint32(0x297A2D39)
+  h = h ^ (h >> 15)
+  return (h >> 8).astype(jnp.float32) / jnp.float32(1 << 24)
 
 
 def value_noise(p):

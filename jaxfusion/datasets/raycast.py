@@ -2,11 +2,15 @@
 
 Each pixel casts the ray `o + t·d` with `d = R_world_cam @ ((u − cx)/fx, (v − cy)/fy, 1)`, so
 the ray parameter `t` of a hit *is* the z-depth. Primitives are grouped by kind into tables
-padded to static sizes (`pack`), every ray is tested against every primitive of every kind
-(rays are processed in fixed-size chunks to bound memory), and the nearest hit wins. A second
-pass computes, for the winning primitive only, the hit point, normal and texture coordinates.
+padded to static sizes (`pack`). On the host, `tile_lists` projects every primitive's bounding
+box into the image and lists, for each 16×16 pixel tile, the primitives that may cover it
+(padded to a power of two). `cast` then tests each tile's rays against its own candidates only
+(vmapped over tiles, `lax.map` over batches of tiles to bound memory) — the same image as
+testing every ray against every primitive (`tiles=None`), several times faster. A second pass
+computes, for the winning primitive only, the hit point, normal and local coordinates.
 
-Shape legend: H×W pixels, N = H·W rays, P primitives, P_k primitives of one kind.
+Shape legend: H×W pixels, N = H·W rays, P primitives, P_k primitives of one kind,
+K_k candidates of one kind per tile.
 """
 
 import functools

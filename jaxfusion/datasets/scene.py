@@ -444,7 +444,11 @@ class _Planner:
   def on_top(self, base: Placement, kind, label, size, rel_xy):
     """Places an item on top of `base` at `rel_xy` in the base's frame."""
     top = base.position[2] + base.size[2]
-    xy = base.position[:2] + rot_z(base.yaw)[:2, :2] @ np.asarray(rel_xy, np.float64)
+    rel_xy = np.asarray(rel_xy, np.float64)
+    if base.kind == "table":  # stay inside the ellipse inscribed in the top (round tops)
+      r = np.sum(np.square(rel_xy / (base.size[:2] / 2)))
+      rel_xy = rel_xy * np.sqrt(min(1.0, 0.7 / max(r, 1e-9)))
+    xy = base.position[:2] + rot_z(base.yaw)[:2, :2] @ rel_xy
     return self.add(kind, label, (xy[0], xy[1], top), base.yaw + self.rng.normal(0, 0.15), size,
                     footprint=False)
 

@@ -33,6 +33,10 @@ NUM_TRAJECTORIES = 3
 FOCAL_FACTOR = 0.6
 # Screen tiles of the ray caster: each tile × tile block is cast against its own candidates.
 TILE = 16
+# Coarse padding of the per-kind tables and generous per-tile list lengths for random views, so
+# that rendering many random rooms compiles only a handful of shapes.
+PACK_STEP = 64
+VIEW_TILE_SIZES = (32, 16, 16, 8)
 
 
 class SyntheticScene(NamedTuple):
@@ -115,7 +119,7 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
     `RGBDFrame` with `rgb (H, W, 3) uint8`, `depth (H, W) float32`, `labels`/`instances`
     `(H, W) int32`.
   """
-  packed = raycast.pack(synthetic_scene.primitives)
+  packed = raycast.pack(synthetic_scene.primitives, step=PACK_STEP)
   T = np.asarray(T_world_cam, np.float32)
   tiles = raycast.tile_lists(packed, T, camera, height=height, width=width, tile=TILE,
                              min_sizes=tile_sizes)
@@ -136,7 +140,7 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
 def trajectory_tile_sizes(synthetic_scene: SyntheticScene, poses, camera: Camera, *,
                           height: int, width: int) -> tuple:
   """The largest per-tile candidate list lengths over a set of poses (for `render`)."""
-  packed = raycast.pack(synthetic_scene.primitives)
+  packed = raycast.pack(synthetic_scene.primitives, step=PACK_STEP)
   sizes = [raycast.list_sizes(raycast.tile_lists(packed, T, camera, height=height, width=width,
                                                  tile=TILE)) for T in poses]
   return tuple(int(x) for x in np.max(np.array(sizes).reshape(-1, 4), axis=0))
@@ -223,7 +227,8 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
       pl = objects[int(rng.integers(len(objects)))]
       target = pl.position + np.array([0.0, 0.0, 0.3])
     T = trajectories.random_view(rng, world.layout.room, target)
-    frame = render(world, T, camera, height=height, width=width, realism=False)
+    frame = render(world, T, camera, height=height, width=width, realism=False,
+                   tile_sizes=VIEW_TILE_SIZES)
     rgb = sensor.noisy_image(jax.random.PRNGKey(int(rng.integers(2**31))),
                              jnp.asarray(frame.rgb, jnp.float32) / 255.0)
     rgbs[i] = np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8)
