@@ -45,7 +45,7 @@ def test_box_seen_head_on():
   hits, _ = _cast([(box, 3), (_wall_x(10.0), 0)], LOOK_X)
   depth, label = np.asarray(hits.depth), np.asarray(hits.label)
   assert depth[12, 16] == pytest.approx(4.5, rel=1e-5)
-  # The face spans |x_cam| ≤ 1 and |y_cam| ≤ 0.5 at z = 4.5: |u − cx| ≤ 4.44, |v − cy| ≤ 2.22.
+  # The face spans |x_cam| ≤ 1, |y_cam| ≤ 0.5 at z = 4.5: |u − cx| ≤ 4.44, |v − cy| ≤ 2.22.
   u, v = np.meshgrid(np.arange(W) - CAM.cx, np.arange(H) - CAM.cy)
   inside = (np.abs(u) < 4.4) & (np.abs(v) < 2.2)
   outside = (np.abs(u) > 4.5) | (np.abs(v) > 2.3)

@@ -87,12 +87,13 @@ def test_save_load_round_trip(office_seq, tmp_path):
 
 
 def test_sample_views_shapes_and_classes():
-  rgb, labels = synthetic.sample_views("train", 6, height=24, width=32, seed=1, views_per_scene=3)
+  rgb, labels = synthetic.sample_views("train", 6, height=24, width=32, seed=1,
+                                       views_per_scene=6)
   assert rgb.shape == (6, 24, 32, 3) and rgb.dtype == np.uint8
   assert labels.shape == (6, 24, 32) and labels.dtype == np.int32
   assert labels.min() >= 0 and labels.max() < 7 and len(np.unique(labels)) >= 3
   rgb2, labels2 = synthetic.sample_views("train", 6, height=24, width=32, seed=1,
-                                         views_per_scene=3)
+                                         views_per_scene=6)
   np.testing.assert_array_equal(rgb, rgb2)
   np.testing.assert_array_equal(labels, labels2)
 

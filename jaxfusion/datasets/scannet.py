@@ -117,7 +117,8 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
   intr_path = os.path.join(path, "intrinsic", "intrinsic_depth.txt")
   camera = read_intrinsics(intr_path)
   raw_to_nyu = None if label_tsv is None else read_label_tsv(label_tsv)
-  color, depth, pose = (_ids(os.path.join(path, sub), _EXT[sub]) for sub in ("color", "depth", "pose"))
+  color, depth, pose = (_ids(os.path.join(path, sub), _EXT[sub])
+                        for sub in ("color", "depth", "pose"))
   label_dir = os.path.join(path, "label-filt")
   labels = _ids(label_dir, _EXT["label-filt"]) if os.path.isdir(label_dir) else None
   sources = {"color": color, "depth": depth, "pose": pose}

@@ -24,7 +24,7 @@ import numpy as np
 from jaxfusion.datasets import appearance
 from jaxfusion.datasets.appearance import lerp
 from jaxfusion.datasets.classes import BACKGROUND, BOTTLE, CHAIR, PLANT, SOFA, TABLE, TV
-from jaxfusion.datasets.primitives import (BOX, CYLINDER, PLANE, SPHERE, Primitives, box_on,
+from jaxfusion.datasets.primitives import (CYLINDER, PLANE, SPHERE, Primitives, box_on,
                                            cylinder_on, part, place, rot_x, rot_y, rot_z,
                                            to_table)
 
@@ -168,7 +168,8 @@ def _sofa(pl: Placement, s: float) -> list:
     if u[7] < s:  # rolled arms: a horizontal cylinder along the depth
       r = arm_w * 0.9
       parts.append(box_on(main, x, 0, lift + base_h, arm_w, d, arm_h))
-      parts.append(part(CYLINDER, (x, 0, lift + base_h + arm_h), (r, r, d / 2), main, rot_x(np.pi / 2)))
+      parts.append(part(CYLINDER, (x, 0, lift + base_h + arm_h), (r, r, d / 2), main,
+                        rot_x(np.pi / 2)))
     else:
       parts.append(box_on(main, x, 0, lift + base_h, arm_w, d, arm_h))
   if lift > 0.03:
@@ -266,7 +267,8 @@ def _shelf(pl: Placement, s: float) -> list:
 def _cabinet(pl: Placement, s: float) -> list:
   w, d, h = pl.size
   mat, metal = _mat(pl, 0, "shelf", s), _mat(pl, 1, "metal", s)
-  parts = [box_on(mat, 0, 0, 0.06, w, d, h - 0.06), box_on(metal, 0, 0, 0.0, w - 0.1, d - 0.1, 0.06)]
+  parts = [box_on(mat, 0, 0, 0.06, w, d, h - 0.06),
+           box_on(metal, 0, 0, 0.0, w - 0.1, d - 0.1, 0.06)]
   for sx in (-1, 1):
     parts.append(box_on(metal, sx * w * 0.1, d / 2 + 0.01, h * 0.6, 0.02, 0.02, 0.12))
   return parts
