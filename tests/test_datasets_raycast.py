@@ -20,7 +20,7 @@ def _cast(parts, T):
 
 def _wall_x(x):
   """An infinite plane x = `x` (local z mapped onto world x)."""
-  return P.part(P.PLANE, (x, 0.0, 0.0), (1, 1, 1), MAT, P.rot_y(np.pi / 2))
+  return P.part(P.PLANE, (x, 0.0, 0.0), (1, 1, 1), MAT, rotation=P.rot_y(np.pi / 2))
 
 
 LOOK_X = trajectories.look_at((0.0, 0.0, 1.0), (1.0, 0.0, 1.0))  # eye at z=1 looking along +x

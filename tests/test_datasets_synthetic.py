@@ -118,3 +118,13 @@ def test_render_command_writes_a_three_panel_png(tmp_path, capsys):
   assert img.shape == (24, 96, 3)
   assert cli.main(["list"]) == 0
   assert "house\t2" in capsys.readouterr().out
+
+
+def test_public_functions_take_optional_arguments_by_keyword_only():
+  import inspect  # pylint: disable=g-import-not-at-top
+  for name in datasets.__all__:
+    obj = getattr(datasets, name)
+    if inspect.isfunction(obj):
+      for p in inspect.signature(obj).parameters.values():
+        if p.default is not inspect.Parameter.empty:
+          assert p.kind == p.KEYWORD_ONLY, f"{name}({p.name}=...) should be keyword-only"

@@ -25,7 +25,7 @@ def disparity_to_depth(disp: np.ndarray) -> np.ndarray:
   return depth.astype(np.float32)
 
 
-def middlebury_frame(T_world_cam=None) -> RGBDFrame:
+def middlebury_frame(*, T_world_cam=None) -> RGBDFrame:
   """The left Motorcycle image with metric depth from the ground-truth disparity.
 
   Args:

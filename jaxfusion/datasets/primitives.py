@@ -98,19 +98,19 @@ def rot_y(angle: float) -> np.ndarray:
   return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def part(kind: int, center, half_size, material: Material, rotation=None) -> Part:
+def part(kind: int, center, half_size, material: Material, *, rotation=None) -> Part:
   """A `Part` from plain sequences (rotation defaults to identity)."""
   rotation = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
   return Part(kind, np.asarray(center, np.float64), rotation,
               np.asarray(half_size, np.float64), material)
 
 
-def box_on(material: Material, x, y, z0, sx, sy, sz, rotation=None) -> Part:
+def box_on(material: Material, x, y, z0, sx, sy, sz, *, rotation=None) -> Part:
   """An axis-aligned (in the object frame) box of full size `(sx, sy, sz)` standing on `z0`."""
-  return part(BOX, (x, y, z0 + sz / 2), (sx / 2, sy / 2, sz / 2), material, rotation)
+  return part(BOX, (x, y, z0 + sz / 2), (sx / 2, sy / 2, sz / 2), material, rotation=rotation)
 
 
-def cylinder_on(material: Material, x, y, z0, radius, height, radius_y=None) -> Part:
+def cylinder_on(material: Material, x, y, z0, radius, height, *, radius_y=None) -> Part:
   """A vertical cylinder of `radius` and `height` standing on `z0`."""
   radius_y = radius if radius_y is None else radius_y
   return part(CYLINDER, (x, y, z0 + height / 2), (radius, radius_y, height / 2), material)

@@ -122,7 +122,7 @@ def _table(pl: Placement, s: float) -> list:
   top_t = _prop(u[1], (0.03, 0.045), (0.05, 0.09), s)
   round_top = u[2] < 0.5 * s and pl.size[2] > 0.6 and w < 1.7
   if round_top:
-    parts = [cylinder_on(top_mat, 0, 0, height - top_t, w / 2, top_t, d / 2),
+    parts = [cylinder_on(top_mat, 0, 0, height - top_t, w / 2, top_t, radius_y=d / 2),
              cylinder_on(leg_mat, 0, 0, 0.02, 0.06, height - top_t - 0.02),
              cylinder_on(leg_mat, 0, 0, 0.0, min(w, d) * 0.3, 0.03)]
     return parts
@@ -169,7 +169,7 @@ def _sofa(pl: Placement, s: float) -> list:
       r = arm_w * 0.9
       parts.append(box_on(main, x, 0, lift + base_h, arm_w, d, arm_h))
       parts.append(part(CYLINDER, (x, 0, lift + base_h + arm_h), (r, r, d / 2), main,
-                        rot_x(np.pi / 2)))
+                        rotation=rot_x(np.pi / 2)))
     else:
       parts.append(box_on(main, x, 0, lift + base_h, arm_w, d, arm_h))
   if lift > 0.03:
@@ -239,7 +239,7 @@ def _plant(pl: Placement, s: float) -> list:
       a = 2 * np.pi * (i + u[4]) / 4
       tilt = rot_z(a) @ rot_y(0.6)
       c = np.array([np.cos(a) * 0.15 * k, np.sin(a) * 0.15 * k, pot_h + 0.25 * k])
-      parts.append(part(SPHERE, c, (0.05 * k, 0.05 * k, 0.26 * k), leaves2, tilt))
+      parts.append(part(SPHERE, c, (0.05 * k, 0.05 * k, 0.26 * k), leaves2, rotation=tilt))
   return parts
 
 
@@ -280,7 +280,7 @@ def _box(pl: Placement, s: float) -> list:
   parts = [box_on(mat, 0, 0, 0.0, w, d, h)]
   if pl.u[0] > 0.5:
     parts.append(box_on(_mat(pl, 1, "cardboard", s), 0.03, -0.02, h, w * 0.7, d * 0.75, h * 0.7,
-                        rot_z(0.3 * (pl.u[1] - 0.5))))
+                        rotation=rot_z(0.3 * (pl.u[1] - 0.5))))
   return parts
 
 
@@ -327,7 +327,7 @@ def _door(pl: Placement, s: float) -> list:
   return [box_on(frame, 0, 0.0, 0.0, w + 0.12, d, h + 0.06),
           box_on(mat, 0, 0.01, 0.0, w, d, h),
           part(CYLINDER, (w * 0.38, d / 2 + 0.04, 1.0), (0.012, 0.012, 0.06), metal,
-               rot_x(np.pi / 2))]
+               rotation=rot_x(np.pi / 2))]
 
 
 def _window(pl: Placement, s: float) -> list:
@@ -647,8 +647,9 @@ def build_primitives(layout: Layout, s: float) -> Primitives:
   ]
   for i, (c, yaw) in enumerate((((lx / 2, 0.0), 0.0), ((lx, ly / 2), np.pi / 2),
                                 ((lx / 2, ly), np.pi), ((0.0, ly / 2), -np.pi / 2))):
-    placed.append((part(PLANE, (c[0], c[1], h / 2), (1, 1, 1), wall, rot_z(yaw) @ rot_x(np.pi / 2)),
-                   BACKGROUND, 3 + i))
+    wall_plane = part(PLANE, (c[0], c[1], h / 2), (1, 1, 1), wall,
+                      rotation=rot_z(yaw) @ rot_x(np.pi / 2))
+    placed.append((wall_plane, BACKGROUND, 3 + i))
   for pl in layout.placements:
     placed += place(BUILDERS[pl.kind](pl, s), pl.position, pl.yaw, pl.label, pl.instance)
   return to_table(placed)

@@ -226,7 +226,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
     if objects and rng.uniform() < 0.8:
       pl = objects[int(rng.integers(len(objects)))]
       target = pl.position + np.array([0.0, 0.0, 0.3])
-    T = trajectories.random_view(rng, world.layout.room, target)
+    T = trajectories.random_view(rng, world.layout.room, target=target)
     frame = render(world, T, camera, height=height, width=width, realism=False,
                    tile_sizes=VIEW_TILE_SIZES)
     rgb = sensor.noisy_image(jax.random.PRNGKey(int(rng.integers(2**31))),

@@ -96,7 +96,7 @@ def trajectory(room, index: int, num_frames: int) -> np.ndarray:
   return np.stack([look_at(e, t) for e, t in zip(eye, target)])
 
 
-def random_view(rng: np.random.Generator, room, target=None) -> np.ndarray:
+def random_view(rng: np.random.Generator, room, *, target=None) -> np.ndarray:
   """A random view from inside a room, for training images.
 
   Args:
