@@ -22,7 +22,7 @@ def _next_pow2(n: int) -> int:
 
 def count_voxels(sequence, *, voxel_size: float) -> int:
   """Number of distinct voxels hit by the valid, labelled pixels of a sequence (NumPy)."""
-  keys = set()
+  keys = []
   cam = sequence.camera
   h, w = sequence.image_size
   u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
@@ -35,8 +35,8 @@ def count_voxels(sequence, *, voxel_size: float) -> int:
                      -1)
     T = frame.T_world_cam.astype(np.float64)
     p_world = p_cam @ T[:3, :3].T + T[:3, 3]
-    keys.update(map(tuple, np.floor(p_world / voxel_size).astype(np.int64)))
-  return len(keys)
+    keys.append(np.unique(np.floor(p_world / voxel_size).astype(np.int64), axis=0))
+  return len(np.unique(np.concatenate(keys), axis=0)) if keys else 0
 
 
 def gt_voxel_labels(sequence, *, voxel_size: float = 0.1, capacity=None) -> dict:
