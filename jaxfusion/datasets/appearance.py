@@ -186,30 +186,39 @@ def lighting(room_size, u, s: float) -> Lighting:
   )
 
 
-def _hash3(cell):
-  """Pseudo-random `[0, 1)` value per integer cell `(..., 3)` (integer mixing, no trig)."""
-  c = cell.astype(jnp.int32).astype(jnp.uint32)
-  h = (c[..., 0] * jnp.uint32(73856093)) ^ (c[..., 1] * jnp.uint32(19349663)) ^ (
-      c[..., 2] * jnp.uint32(83492791))
+def _hash_bits(ix, iy, iz):
+  """`uint32` pseudo-random bits per integer cell (integer mixing, no trigonometry)."""
+  h = (ix.astype(jnp.uint32) * jnp.uint32(73856093)) ^ (
+      iy.astype(jnp.uint32) * jnp.uint32(19349663)) ^ (iz.astype(jnp.uint32) * jnp.uint32(83492791))
   h = (h ^ (h >> 15)) * jnp.uint32(0x2C1B3C6D)
   h = (h ^ (h >> 12)) * jnp.uint32(0x297A2D39)
-  h = h ^ (h >> 15)
-  return (h >> 8).astype(jnp.float32) / jnp.float32(1 << 24)
+  return h ^ (h >> 15)
+
+
+def _unit(bits, shift: int):
+  """8 bits of `bits` starting at `shift`, as a float in [0, 1)."""
+  return ((bits >> shift) & 0xFF).astype(jnp.float32) / 256.0
 
 
 def value_noise(p):
-  """Smooth 3-D value noise in [0, 1] at points `p (..., 3)`."""
+  """Smooth 3-D value noise in [0, 1) at points `p (..., 3)` (trilinear over hashed cells)."""
   cell = jnp.floor(p)
   f = p - cell
   w = f * f * (3.0 - 2.0 * f)
-  total = 0.0
-  for dx in (0.0, 1.0):
-    for dy in (0.0, 1.0):
-      for dz in (0.0, 1.0):
-        corner = jnp.array([dx, dy, dz])
-        weight = jnp.prod(jnp.where(corner > 0, w, 1.0 - w), axis=-1)
-        total = total + weight * _hash3(cell + corner)
-  return total
+  i = cell.astype(jnp.int32)
+  ix, iy, iz = i[..., 0], i[..., 1], i[..., 2]
+  wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+
+  def corner(dx, dy, dz):
+    return _unit(_hash_bits(ix + dx, iy + dy, iz + dz), 8)
+
+  def along_x(dy, dz):
+    a = corner(0, dy, dz)
+    return a + wx * (corner(1, dy, dz) - a)
+
+  y0 = along_x(0, 0) + wy * (along_x(1, 0) - along_x(0, 0))
+  y1 = along_x(0, 1) + wy * (along_x(1, 1) - along_x(0, 1))
+  return y0 + wz * (y1 - y0)
 
 
 def texture(p_local, texture_id, scale, color, color2):
@@ -229,14 +238,17 @@ def texture(p_local, texture_id, scale, color, color2):
   stripes = (jnp.sin(2 * jnp.pi * (f[:, 0] + 0.2 * f[:, 2])) > 0).astype(jnp.float32)
   checker = jnp.mod(jnp.sum(jnp.floor(f), axis=-1), 2.0)
   n1 = value_noise(f)
-  noise = jnp.clip(0.65 * n1 + 0.35 * value_noise(2.3 * f + 11.0), 0.0, 1.0)
+  cell = jnp.floor(4.0 * f).astype(jnp.int32)
+  fine = _hash_bits(cell[:, 0], cell[:, 1], cell[:, 2])  # fine speckle on top of the noise
+  noise = jnp.clip(0.75 * n1 + 0.25 * _unit(fine, 0), 0.0, 1.0)
   grain = jnp.mod(f[:, 0] * 0.5 + 0.15 * jnp.sin(2.0 * f[:, 1]) + 0.6 * n1, 1.0)
   wood = jnp.clip(jnp.abs(2.0 * grain - 1.0) ** 2, 0.0, 1.0)
   mix = jnp.select([texture_id == STRIPES, texture_id == CHECKER, texture_id == WOOD,
                     texture_id == NOISE], [stripes, checker, wood, noise], 0.0)
   albedo = color + mix[:, None] * (color2 - color)
-  cell = jnp.floor(f * jnp.array([1.0, 1.0, 0.5]))
-  screen_rgb = jnp.stack([_hash3(cell), _hash3(cell + 17.0), _hash3(cell + 31.0)], -1)
+  block = jnp.floor(f * jnp.array([1.0, 1.0, 0.5])).astype(jnp.int32)
+  bits = _hash_bits(block[:, 0], block[:, 1], block[:, 2])
+  screen_rgb = jnp.stack([_unit(bits, 0), _unit(bits, 8), _unit(bits, 16)], -1)
   screen = 0.35 * color + 0.65 * screen_rgb
   return jnp.where((texture_id == SCREEN)[:, None], screen, albedo)
 
