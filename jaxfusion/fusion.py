@@ -30,10 +30,11 @@ from jaxfusion.state import MapState
 # spans about 60×60×30) is grouped in one collision-free round; larger frames fall back to
 # hashing keys into the grid, a few rounds.
 _GRID_CELLS = 2**21
-# Static sizes of the per-voxel stage; a frame runs the smallest one that holds its voxels, so
-# the cost of probing, gathering and scattering map rows follows the U touched voxels, not the
-# N pixels (an indoor 640×480 frame at 0.1 m touches about 5 000 voxels).
-_GROUP_TIERS = (2**13, 2**15)
+# Voxels per chunk of the per-voxel stage. A frame's U voxels are placed and updated in
+# ceil(U / _CHUNK) rounds of a `lax.while_loop`, which updates the donated map in place (a
+# `lax.cond`/`switch` over static sizes would not: XLA copies its operands, the whole map). An
+# indoor 640×480 frame at 0.1 m touches about 5 000 voxels: one round.
+_CHUNK = 2**13
 _ROUND_SALT = np.uint32(0x9E3779B9)
 
 
@@ -84,7 +85,7 @@ def group_pixels(keys: jax.Array, valid: jax.Array) -> PixelGroups:
   high = jnp.max(jnp.where(valid[:, None], keys, -big), axis=0)
   span = (high - low + 1).astype(jnp.float32)
   fits = jnp.prod(span) <= _GRID_CELLS          # also true when no pixel is valid
-  rel = jnp.where(valid[:, None], keys - low, 0)
+  rel = jnp.where(valid[:, None], keys - low[None, :], 0)
   span_i = jnp.maximum(high - low + 1, 1)
   box_cell = (rel[:, 0] * span_i[1] + rel[:, 1]) * span_i[2] + rel[:, 2]
   key_hash = hashing.hash_keys(keys)
@@ -129,48 +130,99 @@ def _reduce_terms(terms: rules_base.PixelTerms, segment, num_rows, counts, aggre
   return jax.tree.map(seg_sum, terms.sums), jax.tree.map(seg_max, terms.maxes)
 
 
-def _update_groups(num_rows: int, state: MapState, terms: rules_base.PixelTerms,
-                   keys: jax.Array, valid: jax.Array, groups: PixelGroups,
-                   rule: rules_base.FusionRule) -> MapState:
-  """Places the frame's U ≤ num_rows voxels in the map and applies the rule to each once.
+def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int):
+  """Finds or inserts the frame's U voxels, `chunk` at a time, and adds their pixel counts.
 
-  Every array here has `num_rows` rows (a static size ≥ U), so the work is proportional to it
-  and not to the number of pixels or to the capacity.
+  Returns:
+    `(state, slot_of_group)`: the map with new keys, hits and counters, and `(P,) int32` the slot
+    of each group (capacity where it was dropped or is not a group), P = counts' length.
   """
   capacity = state.capacity
-  n = keys.shape[0]
-  segment = jnp.minimum(groups.segment, num_rows)   # invalid pixels → the junk row num_rows
-  counts = jax.ops.segment_sum(valid.astype(jnp.float32), segment,
-                               num_segments=num_rows + 1)[:num_rows]
-  is_group = jnp.arange(num_rows, dtype=jnp.int32) < groups.num_groups
-  group_keys = keys[groups.first_pixel[:num_rows]] if num_rows < n else keys[groups.first_pixel]
+  lanes = jnp.arange(chunk, dtype=jnp.int32)
 
-  placed = hashing.insert(state.keys, state.claims, group_keys, is_group,
-                          max_probes=state.max_probes)
-  ok = is_group & placed.found
+  def body(carry):
+    c, table, claims, hits, slot_of_group, new, dropped = carry
+    start = c * chunk
+    first = jax.lax.dynamic_slice(groups.first_pixel, (start,), (chunk,))
+    active = start + lanes < groups.num_groups
+    placed = hashing.insert(table, claims, keys[first], active, max_probes=state.max_probes)
+    write = jnp.where(placed.found, placed.slots, capacity)
+    count = jax.lax.dynamic_slice(counts, (start,), (chunk,)).astype(jnp.int32)
+    hits = hits.at[write].set(
+        numerics.saturating_add(hits[jnp.minimum(write, capacity - 1)], count), mode="drop")
+    return (c + 1, placed.table, placed.claims, hits,
+            jax.lax.dynamic_update_slice(slot_of_group, write, (start,)),
+            new + jnp.sum(placed.is_new, dtype=jnp.int32),
+            dropped + jnp.sum(active & ~placed.found, dtype=jnp.int32))
 
-  sums, maxes = _reduce_terms(terms, segment, num_rows, counts, rule.aggregate, ok)
-  observation = rules_base.VoxelObservation(sums, maxes, jnp.where(ok, counts, 1.0))
-  read_slot = jnp.where(ok, placed.slots, 0)
-  rows = jax.tree.map(lambda r: r[read_slot], state.rows)
-  new_rows = jax.vmap(rule.update, in_axes=(0, 0, None))(rows, observation, rule.hparams)
+  init = (jnp.zeros((), jnp.int32), state.keys, state.claims, state.hits,
+          jnp.full(counts.shape[0], capacity, jnp.int32), jnp.zeros((), jnp.int32),
+          jnp.zeros((), jnp.int32))
+  _, table, claims, hits, slot_of_group, new, dropped = jax.lax.while_loop(
+      lambda carry: carry[0] * chunk < groups.num_groups, body, init)
+  state = state.replace(
+      keys=table, claims=claims, hits=hits, num_occupied=state.num_occupied + new,
+      num_dropped=numerics.saturating_add(state.num_dropped, dropped))
+  return state, slot_of_group
 
-  write_slot = jnp.where(ok, placed.slots, capacity)   # out of range: dropped, never written
-  rows = jax.tree.map(
-      lambda r, new: r.at[write_slot].set(new.astype(r.dtype), mode="drop"),
-      state.rows, new_rows)
-  slot_hits = state.hits[read_slot]
-  hits = state.hits.at[write_slot].set(
-      numerics.saturating_add(slot_hits, counts.astype(jnp.int32)), mode="drop")
-  return state.replace(
-      keys=placed.table,
-      claims=placed.claims,
-      rows=rows,
-      hits=hits,
-      num_occupied=state.num_occupied + jnp.sum(ok & placed.is_new, dtype=jnp.int32),
-      num_dropped=numerics.saturating_add(
-          state.num_dropped, jnp.sum(is_group & ~placed.found, dtype=jnp.int32)),
-  )
+
+def _rows_update(rule: rules_base.FusionRule, chunk: int):
+  """The rule's update of the touched rows, as `f(rows, terms, hparams, segment, counts,
+  slot_of_group, num_groups) -> rows`.
+
+  The forward pass reduces and updates `chunk` voxels per round of a `lax.while_loop`, in place
+  and in time proportional to U. Reverse-mode AD cannot go through a while loop whose trip count
+  depends on the data, so the VJP is that of `dense`, the same update written at the static
+  size P (all possible groups) — slower, but only paid when differentiating.
+  """
+  capacity_of = lambda rows: jax.tree.leaves(rows)[0].shape[0]
+
+  def apply(rows, terms, hparams, segment, counts, slots, num_rows):
+    """Updates `num_rows` groups whose reductions are indexed by `segment` ∈ [0, num_rows]."""
+    capacity = capacity_of(rows)
+    ok = slots < capacity
+    sums, maxes = _reduce_terms(terms, segment, num_rows, counts, rule.aggregate, ok)
+    observation = rules_base.VoxelObservation(sums, maxes, jnp.where(ok, counts, 1.0))
+    read_slot = jnp.where(ok, slots, 0)
+    old = jax.tree.map(lambda r: r[read_slot], rows)
+    new = jax.vmap(rule.update, in_axes=(0, 0, None))(old, observation, hparams)
+    return jax.tree.map(lambda r, x: r.at[slots].set(x.astype(r.dtype), mode="drop"), rows, new)
+
+  def dense(rows, terms, hparams, segment, counts, slot_of_group, num_groups):
+    del num_groups
+    num_rows = counts.shape[0]
+    return apply(rows, terms, hparams, jnp.minimum(segment, num_rows), counts, slot_of_group,
+                 num_rows)
+
+  @jax.custom_vjp
+  def update(rows, terms, hparams, segment, counts, slot_of_group, num_groups):
+    def body(carry):
+      c, rows = carry
+      start = c * chunk
+      local = segment - start
+      local = jnp.where((local >= 0) & (local < chunk), local, chunk)
+      return c + 1, apply(rows, terms, hparams, local,
+                          jax.lax.dynamic_slice(counts, (start,), (chunk,)),
+                          jax.lax.dynamic_slice(slot_of_group, (start,), (chunk,)), chunk)
+
+    _, rows = jax.lax.while_loop(lambda carry: carry[0] * chunk < num_groups, body,
+                                 (jnp.zeros((), jnp.int32), rows))
+    return rows
+
+  def fwd(rows, terms, hparams, segment, counts, slot_of_group, num_groups):
+    out = update(rows, terms, hparams, segment, counts, slot_of_group, num_groups)
+    return out, (rows, terms, hparams, segment, counts, slot_of_group, num_groups)
+
+  def bwd(residuals, cotangent):
+    rows, terms, hparams, segment, counts, slot_of_group, num_groups = residuals
+    _, vjp = jax.vjp(
+        lambda r, t, h, c: dense(r, t, h, segment, c, slot_of_group, num_groups),
+        rows, terms, hparams, counts)
+    d_rows, d_terms, d_hparams, d_counts = vjp(cotangent)
+    return d_rows, d_terms, d_hparams, None, d_counts, None, None
+
+  update.defvjp(fwd, bwd)
+  return update
 
 
 def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
@@ -185,27 +237,38 @@ def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
 
   # Valid pixels: positive finite depth, finite probabilities (and variances if given).
   probs = jnp.asarray(frame.probs, jnp.float32).reshape(n, num_classes)
-  valid = in_range & (depth.reshape(n) > 0) & jnp.all(jnp.isfinite(probs), axis=-1)
+  finite_probs = jnp.isfinite(probs)
+  valid = in_range & (depth.reshape(n) > 0) & jnp.all(finite_probs, axis=-1)
   if frame.var is not None:
     var = jnp.asarray(frame.var, jnp.float32).reshape(n, num_classes)
-    valid = valid & jnp.all(jnp.isfinite(var), axis=-1)
+    finite_var = jnp.isfinite(var)
+    valid = valid & jnp.all(finite_var, axis=-1)
   else:
-    var = jnp.zeros_like(probs)
-  # Double-where: invalid pixels never feed NaN into the kernels (nor into their gradients).
-  probs = jnp.where(valid[:, None], jnp.maximum(probs, 0.0), 1.0 / num_classes)
-  var = jnp.where(valid[:, None], var, 0.0)
+    var = finite_var = None
+  # Double-where: no NaN/inf reaches the kernels (nor their gradients). Invalid pixels are sent to
+  # a junk group below, so their terms are never used and only need to be finite; the guard is
+  # therefore per element, not a per-pixel mask broadcast over K, which XLA's CPU loops cannot
+  # vectorise (it doubled the cost of the per-pixel logarithms).
+  probs = jnp.where(finite_probs, jnp.maximum(probs, 0.0), 1.0 / num_classes)
+  var = jnp.zeros_like(probs) if var is None else jnp.where(finite_var, var, 0.0)
 
   groups = group_pixels(keys, valid)
-  terms = jax.vmap(rule.observe, in_axes=(0, 0, None))(probs, var, rule.hparams)
+  chunk = min(_CHUNK, n)
+  padded = -(-n // chunk) * chunk        # whole chunks, so that no dynamic slice is clamped
+  first_pixel = jnp.pad(groups.first_pixel, (0, padded - n))
+  groups = groups._replace(first_pixel=first_pixel)
+  # Pixel counts per group; invalid pixels (segment n) fall in the padding or are dropped.
+  counts = jax.ops.segment_sum(valid.astype(jnp.float32), groups.segment,
+                               num_segments=padded)
+  counts = jnp.where(jnp.arange(padded) < groups.num_groups, counts, 0.0)
 
-  # The per-voxel stage at the smallest static size that holds the frame's voxels.
-  tiers = sorted({min(t, n) for t in _GROUP_TIERS} | {n})
-  branches = [lambda s, rows=rows: _update_groups(rows, s, terms, keys, valid, groups, rule)
-              for rows in tiers]
-  if len(branches) == 1:
-    return branches[0](state)
-  tier = jnp.sum(groups.num_groups > jnp.asarray(tiers[:-1], jnp.int32), dtype=jnp.int32)
-  return jax.lax.switch(tier, branches, state)
+  # Place the frame's voxels in the map, then reduce the rule's per-pixel terms per voxel and
+  # update each touched voxel once.
+  state, slot_of_group = _place_groups(state, keys, groups, counts, chunk)
+  terms = jax.vmap(rule.observe, in_axes=(0, 0, None))(probs, var, rule.hparams)
+  rows = _rows_update(rule, chunk)(state.rows, terms, rule.hparams, groups.segment, counts,
+                                   slot_of_group, groups.num_groups)
+  return state.replace(rows=rows)
 
 
 _fuse_frame_jit = jax.jit(_fuse_frame, donate_argnums=0)
