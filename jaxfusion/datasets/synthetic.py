@@ -35,7 +35,7 @@ FOCAL_FACTOR = 0.6
 TILE = 16
 # Coarse padding of the per-kind tables and generous per-tile list lengths for random views, so
 # that rendering many random rooms compiles only a handful of shapes.
-PACK_STEP = 64
+VIEW_PACK_STEP = 256
 VIEW_TILE_SIZES = (32, 16, 16, 8)
 
 
@@ -100,7 +100,8 @@ def _shade(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Li
 
 
 def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, height: int,
-           width: int, realism: bool = False, key=None, tile_sizes=(0, 0, 0, 0)) -> RGBDFrame:
+           width: int, realism: bool = False, key=None, tile_sizes=(0, 0, 0, 0),
+           pack_step: int = 64) -> RGBDFrame:
   """Renders one frame of a synthetic scene.
 
   Args:
@@ -114,12 +115,14 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
     tile_sizes: lower bounds of the per-tile candidate list lengths (see
       `raycast.tile_lists`); give the maximum over a trajectory to compile once for all
       of its frames.
+    pack_step: the per-kind primitive tables are padded to a multiple of this (coarser
+      padding: fewer distinct shapes across scenes, hence fewer compilations).
 
   Returns:
     `RGBDFrame` with `rgb (H, W, 3) uint8`, `depth (H, W) float32`, `labels`/`instances`
     `(H, W) int32`.
   """
-  packed = raycast.pack(synthetic_scene.primitives, step=PACK_STEP)
+  packed = raycast.pack(synthetic_scene.primitives, step=pack_step)
   T = np.asarray(T_world_cam, np.float32)
   tiles = raycast.tile_lists(packed, T, camera, height=height, width=width, tile=TILE,
                              min_sizes=tile_sizes)
@@ -140,7 +143,7 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
 def trajectory_tile_sizes(synthetic_scene: SyntheticScene, poses, camera: Camera, *,
                           height: int, width: int) -> tuple:
   """The largest per-tile candidate list lengths over a set of poses (for `render`)."""
-  packed = raycast.pack(synthetic_scene.primitives, step=PACK_STEP)
+  packed = raycast.pack(synthetic_scene.primitives, step=64)
   sizes = [raycast.list_sizes(raycast.tile_lists(packed, T, camera, height=height, width=width,
                                                  tile=TILE)) for T in poses]
   return tuple(int(x) for x in np.max(np.array(sizes).reshape(-1, 4), axis=0))
@@ -228,7 +231,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
       target = pl.position + np.array([0.0, 0.0, 0.3])
     T = trajectories.random_view(rng, world.layout.room, target=target)
     frame = render(world, T, camera, height=height, width=width, realism=False,
-                   tile_sizes=VIEW_TILE_SIZES)
+                   tile_sizes=VIEW_TILE_SIZES, pack_step=VIEW_PACK_STEP)
     rgb = sensor.noisy_image(jax.random.PRNGKey(int(rng.integers(2**31))),
                              jnp.asarray(frame.rgb, jnp.float32) / 255.0)
     rgbs[i] = np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8)
