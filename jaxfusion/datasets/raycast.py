@@ -203,8 +203,9 @@ def screen_bounds(primitives: Primitives, T_world_cam, camera: Camera) -> np.nda
     camera: intrinsics.
 
   Returns:
-    `(P, 4) float64` `[u_min, u_max, v_min, v_max]`: the whole plane for planes and for
-    primitives that straddle the camera plane, an empty box for primitives behind the camera.
+    `(P, 4) float64` `[u_min, u_max, v_min, v_max]` of the part of each primitive's bounding
+    box in front of the near plane (the box clipped at z = NEAR, then projected): the whole
+    image plane for planes, an empty box for primitives entirely behind the camera.
   """
   T = np.asarray(T_world_cam, np.float64)
   corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
@@ -212,18 +213,25 @@ def screen_bounds(primitives: Primitives, T_world_cam, camera: Camera) -> np.nda
   p_world = primitives.center[:, None, :] + np.einsum("pij,pcj->pci",
                                                       primitives.rotation.astype(np.float64),
                                                       local)
-  p_cam = (p_world - T[:3, 3]) @ T[:3, :3]
-  z = p_cam[..., 2]
-  zs = np.maximum(z, 1e-6)
-  u = camera.fx * p_cam[..., 0] / zs + camera.cx
-  v = camera.fy * p_cam[..., 1] / zs + camera.cy
-  bounds = np.stack([u.min(1), u.max(1), v.min(1), v.max(1)], -1)
+  p_cam = (p_world - T[:3, 3]) @ T[:3, :3]  # (P, 8, 3)
+  # Clip against z ≥ NEAR: keep the corners in front and add where the 12 edges cross it.
+  edges = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
+                    if bin(a ^ b).count("1") == 1])
+  pa, pb = p_cam[:, edges[:, 0]], p_cam[:, edges[:, 1]]
+  za, zb = pa[..., 2], pb[..., 2]
+  crosses = (za - NEAR) * (zb - NEAR) < 0
+  s = np.where(crosses, (NEAR - za) / np.where(crosses, zb - za, 1.0), 0.0)
+  cut = pa + s[..., None] * (pb - pa)
+  points = np.concatenate([p_cam, cut], axis=1)  # (P, 20, 3)
+  valid = np.concatenate([p_cam[..., 2] >= NEAR, crosses], axis=1)
+  z = np.where(valid, np.maximum(points[..., 2], NEAR), 1.0)
+  u = camera.fx * points[..., 0] / z + camera.cx
+  v = camera.fy * points[..., 1] / z + camera.cy
+  lo = lambda x: np.where(valid, x, np.inf).min(1)
+  hi = lambda x: np.where(valid, x, -np.inf).max(1)
+  bounds = np.stack([lo(u), hi(u), lo(v), hi(v)], -1)
   everywhere = np.array([-np.inf, np.inf, -np.inf, np.inf])
-  nowhere = np.array([np.inf, -np.inf, np.inf, -np.inf])
-  straddles = (z.min(1) <= NEAR) | (primitives.kind == PLANE)
-  behind = (z.max(1) <= NEAR) & (primitives.kind != PLANE)
-  bounds = np.where(straddles[:, None], everywhere, bounds)
-  return np.where(behind[:, None], nowhere, bounds)
+  return np.where((primitives.kind == PLANE)[:, None], everywhere, bounds)
 
 
 def _pow2_at_least(n: int) -> int:
