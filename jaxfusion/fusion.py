@@ -12,7 +12,7 @@ Data flow of `fuse_frame` (shape legend: H×W pixels, N = H·W, K classes, C slo
 The engine never looks at which rule it runs: it calls the rule's kernels only.
 """
 
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -35,6 +35,8 @@ _GRID_CELLS = 2**21
 # `lax.cond`/`switch` over static sizes would not: XLA copies its operands, the whole map). An
 # indoor 640×480 frame at 0.1 m touches about 5 000 voxels: one round.
 _CHUNK = 2**13
+# Pixels per block when the per-pixel terms are computed and reduced (bounds their scratch).
+_PIXEL_BLOCK = 2**15
 _ROUND_SALT = np.uint32(0x9E3779B9)
 
 
@@ -113,23 +115,6 @@ def group_pixels(keys: jax.Array, valid: jax.Array) -> PixelGroups:
   return PixelGroups(segment, first_pixel, jnp.sum(first, dtype=jnp.int32))
 
 
-def _reduce_terms(terms: rules_base.PixelTerms, segment, num_rows, counts, aggregate, ok):
-  """Per-group sums (or means) and maxes of per-pixel terms; rows that are not `ok` are set to
-  harmless finite values so that no NaN/inf reaches the update (or its gradient)."""
-
-  def seg_sum(t):
-    s = jax.ops.segment_sum(t, segment, num_segments=num_rows + 1)[:num_rows]
-    if aggregate == "mean":
-      s = s / jnp.maximum(counts, 1.0)[:, None]
-    return jnp.where(ok[:, None], s, 0.0)
-
-  def seg_max(t):
-    m = jax.ops.segment_max(t, segment, num_segments=num_rows + 1)[:num_rows]
-    return jnp.where(ok[:, None], m, 1.0)
-
-  return jax.tree.map(seg_sum, terms.sums), jax.tree.map(seg_max, terms.maxes)
-
-
 def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int):
   """Finds or inserts the frame's U voxels, `chunk` at a time, and adds their pixel counts.
 
@@ -166,60 +151,98 @@ def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int
   return state, slot_of_group
 
 
-def _rows_update(rule: rules_base.FusionRule, chunk: int):
-  """The rule's update of the touched rows, as `f(rows, terms, hparams, segment, counts,
-  slot_of_group, num_groups) -> rows`.
+def _pixel_blocks(n: int) -> int:
+  """Number of equal pixel blocks (about `_PIXEL_BLOCK` pixels each) that N splits into."""
+  start = -(-n // _PIXEL_BLOCK)
+  for blocks in range(start, 4 * start + 1):
+    if n % blocks == 0:
+      return blocks
+  return 1
 
-  The forward pass reduces and updates `chunk` voxels per round of a `lax.while_loop`, in place
-  and in time proportional to U. Reverse-mode AD cannot go through a while loop whose trip count
-  depends on the data, so the VJP is that of `dense`, the same update written at the static
-  size P (all possible groups) — slower, but only paid when differentiating.
+
+def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
+  """The rule's update of the touched rows, as `f(rows, probs, var, hparams, segment, counts,
+  slot_of_group, num_groups) -> rows`, where `observe(probs, var, hparams)` gives the per-pixel
+  terms of `(n, K)` inputs.
+
+  The forward pass handles `chunk` voxels per round of a `lax.while_loop`, in place and in time
+  proportional to U; within a round the per-pixel terms are computed and scatter-reduced one
+  block of pixels at a time, so no `(N, K)` term array is ever materialised. Reverse-mode AD
+  cannot go through a while loop whose trip count depends on the data, so the VJP is that of
+  `dense`, the same update written at the static size P (all possible groups) — slower, but only
+  paid when differentiating.
   """
-  capacity_of = lambda rows: jax.tree.leaves(rows)[0].shape[0]
 
-  def apply(rows, terms, hparams, segment, counts, slots, num_rows):
-    """Updates `num_rows` groups whose reductions are indexed by `segment` ∈ [0, num_rows]."""
-    capacity = capacity_of(rows)
+  def apply(rows, hparams, sums, maxes, counts, slots):
+    """Applies reduced observations (raw per-group sums and maxes) at `slots`."""
+    capacity = jax.tree.leaves(rows)[0].shape[0]
     ok = slots < capacity
-    sums, maxes = _reduce_terms(terms, segment, num_rows, counts, rule.aggregate, ok)
+    if rule.aggregate == "mean":
+      sums = jax.tree.map(lambda x: x / jnp.maximum(counts, 1.0)[:, None], sums)
+    sums = jax.tree.map(lambda x: jnp.where(ok[:, None], x, 0.0), sums)
+    maxes = jax.tree.map(lambda x: jnp.where(ok[:, None], x, 1.0), maxes)
     observation = rules_base.VoxelObservation(sums, maxes, jnp.where(ok, counts, 1.0))
     read_slot = jnp.where(ok, slots, 0)
     old = jax.tree.map(lambda r: r[read_slot], rows)
     new = jax.vmap(rule.update, in_axes=(0, 0, None))(old, observation, hparams)
     return jax.tree.map(lambda r, x: r.at[slots].set(x.astype(r.dtype), mode="drop"), rows, new)
 
-  def dense(rows, terms, hparams, segment, counts, slot_of_group, num_groups):
-    del num_groups
+  def dense(rows, probs, var, hparams, segment, counts, slot_of_group):
     num_rows = counts.shape[0]
-    return apply(rows, terms, hparams, jnp.minimum(segment, num_rows), counts, slot_of_group,
-                 num_rows)
+    segment = jnp.minimum(segment, num_rows)
+    terms = observe(probs, var, hparams)
+    sums = jax.tree.map(
+        lambda t: jax.ops.segment_sum(t, segment, num_segments=num_rows + 1)[:num_rows],
+        terms.sums)
+    maxes = jax.tree.map(
+        lambda t: jax.ops.segment_max(t, segment, num_segments=num_rows + 1)[:num_rows],
+        terms.maxes)
+    return apply(rows, hparams, sums, maxes, counts, slot_of_group)
 
   @jax.custom_vjp
-  def update(rows, terms, hparams, segment, counts, slot_of_group, num_groups):
+  def update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups):
+    n, num_classes = probs.shape
+    blocks = _pixel_blocks(n)
+    size = n // blocks
+    shapes = jax.eval_shape(observe, probs[:1], var[:1], hparams)
+
+    def reduce_block(b, acc, start):
+      sums, maxes = acc
+      p = jax.lax.dynamic_slice(probs, (b * size, 0), (size, num_classes))
+      v = jax.lax.dynamic_slice(var, (b * size, 0), (size, num_classes))
+      local = jax.lax.dynamic_slice(segment, (b * size,), (size,)) - start
+      local = jnp.where((local >= 0) & (local < chunk), local, chunk)
+      terms = observe(p, v, hparams)
+      sums = jax.tree.map(lambda a, t: a.at[local].add(t), sums, terms.sums)
+      maxes = jax.tree.map(lambda a, t: a.at[local].max(t), maxes, terms.maxes)
+      return sums, maxes
+
     def body(carry):
       c, rows = carry
       start = c * chunk
-      local = segment - start
-      local = jnp.where((local >= 0) & (local < chunk), local, chunk)
-      return c + 1, apply(rows, terms, hparams, local,
+      acc = (jax.tree.map(lambda x: jnp.zeros((chunk + 1,) + x.shape[1:], x.dtype), shapes.sums),
+             jax.tree.map(lambda x: jnp.full((chunk + 1,) + x.shape[1:], -jnp.inf, x.dtype),
+                          shapes.maxes))
+      sums, maxes = jax.lax.fori_loop(0, blocks, lambda b, a: reduce_block(b, a, start), acc)
+      sums, maxes = jax.tree.map(lambda x: x[:chunk], (sums, maxes))
+      return c + 1, apply(rows, hparams, sums, maxes,
                           jax.lax.dynamic_slice(counts, (start,), (chunk,)),
-                          jax.lax.dynamic_slice(slot_of_group, (start,), (chunk,)), chunk)
+                          jax.lax.dynamic_slice(slot_of_group, (start,), (chunk,)))
 
     _, rows = jax.lax.while_loop(lambda carry: carry[0] * chunk < num_groups, body,
                                  (jnp.zeros((), jnp.int32), rows))
     return rows
 
-  def fwd(rows, terms, hparams, segment, counts, slot_of_group, num_groups):
-    out = update(rows, terms, hparams, segment, counts, slot_of_group, num_groups)
-    return out, (rows, terms, hparams, segment, counts, slot_of_group, num_groups)
+  def fwd(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups):
+    out = update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups)
+    return out, (rows, probs, var, hparams, segment, counts, slot_of_group)
 
   def bwd(residuals, cotangent):
-    rows, terms, hparams, segment, counts, slot_of_group, num_groups = residuals
-    _, vjp = jax.vjp(
-        lambda r, t, h, c: dense(r, t, h, segment, c, slot_of_group, num_groups),
-        rows, terms, hparams, counts)
-    d_rows, d_terms, d_hparams, d_counts = vjp(cotangent)
-    return d_rows, d_terms, d_hparams, None, d_counts, None, None
+    rows, probs, var, hparams, segment, counts, slot_of_group = residuals
+    _, vjp = jax.vjp(lambda r, p, v, h, c: dense(r, p, v, h, segment, c, slot_of_group),
+                     rows, probs, var, hparams, counts)
+    d_rows, d_probs, d_var, d_hparams, d_counts = vjp(cotangent)
+    return d_rows, d_probs, d_var, d_hparams, None, d_counts, None, None
 
   update.defvjp(fwd, bwd)
   return update
@@ -237,20 +260,21 @@ def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
 
   # Valid pixels: positive finite depth, finite probabilities (and variances if given).
   probs = jnp.asarray(frame.probs, jnp.float32).reshape(n, num_classes)
-  finite_probs = jnp.isfinite(probs)
-  valid = in_range & (depth.reshape(n) > 0) & jnp.all(finite_probs, axis=-1)
+  valid = in_range & (depth.reshape(n) > 0) & jnp.all(jnp.isfinite(probs), axis=-1)
   if frame.var is not None:
     var = jnp.asarray(frame.var, jnp.float32).reshape(n, num_classes)
-    finite_var = jnp.isfinite(var)
-    valid = valid & jnp.all(finite_var, axis=-1)
-  else:
-    var = finite_var = None
+    valid = valid & jnp.all(jnp.isfinite(var), axis=-1)
   # Double-where: no NaN/inf reaches the kernels (nor their gradients). Invalid pixels are sent to
-  # a junk group below, so their terms are never used and only need to be finite; the guard is
+  # a junk group, so their terms are never used and only need to be finite; the guard is
   # therefore per element, not a per-pixel mask broadcast over K, which XLA's CPU loops cannot
-  # vectorise (it doubled the cost of the per-pixel logarithms).
-  probs = jnp.where(finite_probs, jnp.maximum(probs, 0.0), 1.0 / num_classes)
-  var = jnp.zeros_like(probs) if var is None else jnp.where(finite_var, var, 0.0)
+  # vectorise (it doubled the cost of the per-pixel logarithms). It runs inside `observe`, block
+  # by block, so the guarded copies are never materialised either.
+  has_var = frame.var is not None
+
+  def observe(p, v, hparams):
+    p = jnp.where(jnp.isfinite(p), jnp.maximum(p, 0.0), 1.0 / num_classes)
+    v = jnp.where(jnp.isfinite(v), v, 0.0) if has_var else jnp.zeros_like(p)
+    return jax.vmap(rule.observe, in_axes=(0, 0, None))(p, v, hparams)
 
   groups = group_pixels(keys, valid)
   chunk = min(_CHUNK, n)
@@ -265,9 +289,9 @@ def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
   # Place the frame's voxels in the map, then reduce the rule's per-pixel terms per voxel and
   # update each touched voxel once.
   state, slot_of_group = _place_groups(state, keys, groups, counts, chunk)
-  terms = jax.vmap(rule.observe, in_axes=(0, 0, None))(probs, var, rule.hparams)
-  rows = _rows_update(rule, chunk)(state.rows, terms, rule.hparams, groups.segment, counts,
-                                   slot_of_group, groups.num_groups)
+  rows = _rows_update(rule, chunk, observe)(
+      state.rows, probs, var if has_var else probs, rule.hparams, groups.segment, counts,
+      slot_of_group, groups.num_groups)
   return state.replace(rows=rows)
 
 
