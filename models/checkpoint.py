@@ -104,6 +104,7 @@ def save(path: str | os.PathLike, params: nnx.State, *, config: net.SegNetConfig
   try:
     with os.fdopen(fd, "wb") as f:
       f.write(data)
+    os.chmod(tmp, 0o644)  # mkstemp creates 0600; a checkpoint is an ordinary data file.
     os.replace(tmp, path)
   except BaseException:
     pathlib.Path(tmp).unlink(missing_ok=True)

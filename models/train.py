@@ -28,13 +28,13 @@ import optax
 from flax import nnx
 from tqdm import tqdm
 
-from . import checkpoint, evaluate, net, sampling
+from . import checkpoint, evaluate, net
 
 
 class TrainConfig(NamedTuple):
   """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
 
-  steps: int = 1500
+  steps: int = 2000
   batch_size: int = 12
   learning_rate: float = 3e-3
   warmup_steps: int = 60
@@ -42,6 +42,7 @@ class TrainConfig(NamedTuple):
   clip_norm: float = 1.0
   class_weight_power: float = 0.5
   class_weight_max: float = 8.0
+  color_strength: float = 1.0
 
 
 def class_weights(labels: np.ndarray, num_classes: int, *, power: float = 0.5,
@@ -72,20 +73,33 @@ def class_weights(labels: np.ndarray, num_classes: int, *, power: float = 0.5,
   return (weights / max(mean_pixel_weight, 1e-12)).astype(np.float32)
 
 
-def augment(key: jax.Array, images: jax.Array, labels: jax.Array) -> tuple[jax.Array, jax.Array]:
-  """Random flip, shifted crop (reflect-padded), colour jitter and noise, per image.
+def _hue_rotation(theta: jax.Array) -> jax.Array:
+  """`(3, 3)` RGB matrix rotating hue by `theta` radians about the YIQ luma axis."""
+  to_yiq = jnp.array([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322],
+                      [0.211, -0.523, 0.312]], jnp.float32)
+  c, s = jnp.cos(theta), jnp.sin(theta)
+  rot = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], jnp.float32)
+  rot = rot.at[1, 1].set(c).at[1, 2].set(-s).at[2, 1].set(s).at[2, 2].set(c)
+  return jnp.linalg.inv(to_yiq) @ rot @ to_yiq
+
+
+def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
+            strength: float = 1.0) -> tuple[jax.Array, jax.Array]:
+  """Random flip, shifted crop (reflect-padded), colour randomisation and noise, per image.
 
   Args:
     key: PRNG key.
     images: `(B, H, W, 3)` float32 in [0, 1].
     labels: `(B, H, W)` int32.
+    strength: scale of the colour randomisation (0: geometry and noise only).
 
   Returns:
     Augmented `(images, labels)` of the same shapes and dtypes.
   """
 
   def one(k, image, label):
-    k_flip, k_dx, k_dy, k_gain, k_bright, k_con, k_sat, k_noise = jax.random.split(k, 8)
+    (k_flip, k_dx, k_dy, k_gain, k_bright, k_con, k_sat, k_noise, k_hue, k_hue_on, k_perm,
+     k_perm_on, k_gray, k_gamma) = jax.random.split(k, 14)
     flip = jax.random.bernoulli(k_flip)
     image = jnp.where(flip, image[:, ::-1], image)
     label = jnp.where(flip, label[:, ::-1], label)
@@ -97,14 +111,27 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array) -> tuple[jax.A
     dx = jax.random.randint(k_dx, (), 0, 2 * pad_w + 1)
     image = jax.lax.dynamic_slice(image_p, (dy, dx, 0), (h, w, 3))
     label = jax.lax.dynamic_slice(label_p, (dy, dx), (h, w))
-    gain = jax.random.uniform(k_gain, (3,), minval=0.85, maxval=1.15)
-    bright = jax.random.uniform(k_bright, (), minval=-0.08, maxval=0.08)
-    contrast = jax.random.uniform(k_con, (), minval=0.8, maxval=1.2)
-    sat = jax.random.uniform(k_sat, (), minval=0.8, maxval=1.2)
-    gray = jnp.mean(image, axis=-1, keepdims=True)
-    image = gray + sat * (image - gray)
-    image = (image - 0.5) * contrast + 0.5 + bright
-    image = image * gain
+    if strength > 0:
+      # Colour randomisation so that the net leans on shape and layout rather than on the
+      # training palette: hue rotation, channel shuffles, grey-scale, gamma, saturation,
+      # contrast, brightness and per-channel gain, each scaled by `strength`.
+      theta = jnp.where(jax.random.bernoulli(k_hue_on, 0.5 * min(strength, 1.0)),
+                        jax.random.uniform(k_hue, (), minval=-jnp.pi, maxval=jnp.pi), 0.0)
+      image = jnp.clip(image @ _hue_rotation(theta).T, 0.0, 1.0)
+      perm = jax.random.permutation(k_perm, 3)
+      image = jnp.where(jax.random.bernoulli(k_perm_on, 0.25 * min(strength, 1.0)),
+                        image[..., perm], image)
+      gamma = jnp.exp(jax.random.uniform(k_gamma, (), minval=-0.4, maxval=0.4) * strength)
+      image = image ** gamma
+      gray = jnp.mean(image, axis=-1, keepdims=True)
+      sat = jnp.where(jax.random.bernoulli(k_gray, 0.15 * min(strength, 1.0)), 0.0,
+                      1.0 + strength * jax.random.uniform(k_sat, (), minval=-0.5, maxval=0.5))
+      image = gray + sat * (image - gray)
+      contrast = 1.0 + strength * jax.random.uniform(k_con, (), minval=-0.4, maxval=0.4)
+      bright = strength * jax.random.uniform(k_bright, (), minval=-0.15, maxval=0.15)
+      image = (image - 0.5) * contrast + 0.5 + bright
+      image = image * (1.0 + strength * jax.random.uniform(k_gain, (3,), minval=-0.2,
+                                                          maxval=0.2))
     image = image + 0.02 * jax.random.normal(k_noise, image.shape)
     return jnp.clip(image, 0.0, 1.0), label
 
@@ -142,10 +169,12 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
                      optax.adamw(schedule, weight_decay=cfg.weight_decay))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1), donate_argnums=(2, 3))
+@functools.partial(jax.jit, static_argnums=(0, 1), static_argnames="color_strength",
+                   donate_argnums=(2, 3))
 def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
                params: nnx.State, opt_state: optax.OptState, key: jax.Array,
-               images: jax.Array, labels: jax.Array, weights: jax.Array):
+               images: jax.Array, labels: jax.Array, weights: jax.Array, *,
+               color_strength: float = 1.0):
   """One AdamW step on a batch (augmented here, dropout on).
 
   Args:
@@ -157,12 +186,13 @@ def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
     images: `(B, H, W, 3)` uint8.
     labels: `(B, H, W)` int32.
     weights: `(K,)` float32 class weights.
+    color_strength: static; scale of the colour augmentation.
 
   Returns:
     `(params, opt_state, loss)`.
   """
   k_aug, k_drop = jax.random.split(key)
-  x, y = augment(k_aug, images.astype(jnp.float32) / 255.0, labels)
+  x, y = augment(k_aug, images.astype(jnp.float32) / 255.0, labels, strength=color_strength)
 
   def loss_fn(p):
     logits = net.apply(graphdef, p, k_drop, x, deterministic=False)
@@ -219,7 +249,8 @@ def fit(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarray, labels: n
     cursor += batch
     params, opt_state, loss = train_step(
         graphdef, optimizer, params, opt_state, jax.random.fold_in(key, step),
-        jnp.asarray(images[idx]), jnp.asarray(labels[idx]), weights)
+        jnp.asarray(images[idx]), jnp.asarray(labels[idx]), weights,
+        color_strength=cfg.color_strength)
     losses[step] = float(loss)
     if progress and (step % 10 == 0 or step == cfg.steps - 1):
       bar.set_postfix(loss=f"{losses[max(step - 9, 0):step + 1].mean():.3f}")
@@ -292,6 +323,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p.add_argument("--batch-size", type=int, default=TrainConfig().batch_size)
   p.add_argument("--lr", type=float, default=TrainConfig().learning_rate)
   p.add_argument("--weight-decay", type=float, default=TrainConfig().weight_decay)
+  p.add_argument("--color-strength", type=float, default=TrainConfig().color_strength,
+                 help="scale of the colour augmentation (0 = geometry and noise only)")
   p.add_argument("--height", type=int, default=96)
   p.add_argument("--width", type=int, default=128)
   p.add_argument("--num-train", type=int, default=None)
@@ -323,7 +356,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       blocks_per_stage=args.blocks_per_stage, aspp_width=args.aspp_width,
       dropout_rate=args.dropout)
   cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
-                    weight_decay=args.weight_decay)
+                    weight_decay=args.weight_decay, color_strength=args.color_strength)
   size = dict(height=args.height, width=args.width, cache_dir=args.cache)
 
   t0 = time.time()
