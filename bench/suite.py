@@ -82,7 +82,6 @@ def machine() -> dict:
       "platform": dev.platform, "device_kind": dev.device_kind, "cpu": cpu,
       "cpu_count": os.cpu_count(), "load_avg_1_5_15": load, "jax": jax.__version__,
       "numpy": np.__version__, "python": platform.python_version(),
-      "malloc_mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
       "time": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
   }
 
@@ -328,8 +327,7 @@ def to_markdown(results: dict) -> str:
   """The tables of RESULTS.md from a results dict."""
   m = results["machine"]
   lines = [f"Device: **{m['device_kind']}** ({m['platform']}), {m['cpu_count']} CPUs "
-           f"({m['cpu']}), load average {m['load_avg_1_5_15']}, jax {m['jax']}, "
-           f"MALLOC_MMAP_THRESHOLD_={m['malloc_mmap_threshold']}, {m['time']}.", ""]
+           f"({m['cpu']}), load average {m['load_avg_1_5_15']}, jax {m['jax']}, {m['time']}.", ""]
   lines += ["### fuse_frame throughput (median per frame; `public` includes the host-side input "
             "checks of `fuse_frame`, `core` is the jitted step alone)", "",
             "| rule | H×W | K | compile s | public ms | public frames/s | core ms | core frames/s "
