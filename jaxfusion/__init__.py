@@ -31,11 +31,13 @@ from jaxfusion.state import map_stats
 from jaxfusion.tune import calibration_loss
 from jaxfusion.tune import sweep_beta
 from jaxfusion.tune import tune_hparams
+# Last: the datasets' ground truth is computed with the engine imported above.
+from jaxfusion import datasets  # pylint: disable=g-bad-import-order
 
 __version__ = "0.1.0"
 
 __all__ = sorted([
-    "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch",
+    "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch", "datasets",
     "calibration_loss", "fuse_batch", "fuse_frame", "fuse_sequence", "fuse_sweep", "init_map",
     "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid", "rules",
     "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
