@@ -280,11 +280,10 @@ def run(config: Config, *, out_dir, log=print) -> dict:
         log(f"fuse_frame {rule_name:10s} {height}x{width} K={k}: {row['ms_per_frame']:.2f} ms "
             f"({row['frames_per_s']:.1f} frames/s; core {row['core_ms_per_frame']:.2f} ms), "
             f"compile {row['compile_s']:.2f} s")
-      if (height, width, k) == (config.resolutions[-1] + (max(config.classes),)) or (
-          (height, width) == config.resolutions[-1] and k == HEADLINE["num_classes"]):
+      # The peers and the capacity scan use the largest resolution at K = 13 (or the last K).
+      if (height, width) == config.resolutions[-1] and (
+          k == HEADLINE["num_classes"] or headline_frames is None):
         headline_frames = frames
-  if headline_frames is None:
-    headline_frames = frames
   # Peers on the same frames, one after the other, in this process.
   for rule_name in config.rules:
     row = numpy_row(headline_frames, rule_name, repeats=config.peer_repeats,
