@@ -47,7 +47,7 @@ class ExperimentConfig:
 
   @classmethod
   def quick(cls, **overrides) -> "ExperimentConfig":
-    base = dict(envs=("office",), trajectories=(0,), num_frames=12, height=60, width=80,
+    base = dict(envs=("office",), trajectories=(0,), num_frames=20, height=90, width=120,
                 num_samples=8)
     base.update(overrides)
     return cls(**base)
@@ -215,6 +215,8 @@ def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optiona
       figures.map_views(path, shown, voxel_size=config.voxel_size, colors=colors)
       files.append(path)
 
+  if len(config.envs) == 1:   # the per-environment table would repeat "all"
+    confusions = {"all": confusions["all"]}
   results = {scope: _summarize(cms) for scope, cms in confusions.items()}
   table = "\n\n".join(f"**{scope}** ({_scope_note(scope, config)})\n\n"
                       + format_table(res, class_names) for scope, res in results.items())
