@@ -181,16 +181,14 @@ def _filled_state(capacity, fill, num_classes, rule, voxel_size, seed=0):
   rng = np.random.default_rng(seed)
   keys = rng.integers(-10**6, 10**6, (count, 3)).astype(np.int32)
   keys[:, 2] = 10**6 + np.arange(count)        # distinct, and far from the room
-  insert = jax.jit(lambda t, c, k: hashing.insert(t, c, k, jnp.ones(k.shape[0], bool),
-                                                  max_probes=capacity))
+  insert = jax.jit(lambda t, c, k, a: hashing.insert(t, c, k, a, max_probes=capacity))
   table, claims = state.keys, state.claims
   chunk = 2**16
   for start in range(0, count, chunk):
     part = keys[start:start + chunk]
-    if len(part) < chunk:
-      part = np.concatenate([part, np.repeat(part[-1:], chunk - len(part), 0)])
-      part[len(keys[start:start + chunk]):, 2] = -1 - np.arange(chunk - len(keys[start:]))
-    res = insert(table, claims, jnp.asarray(part))
+    active = np.arange(chunk) < len(part)
+    part = np.concatenate([part, np.zeros((chunk - len(part), 3), np.int32)])
+    res = insert(table, claims, jnp.asarray(part), jnp.asarray(active))
     table, claims = res.table, res.claims
   occupied = int(jnp.sum(table[:, 0] != hashing.EMPTY))
   return state.replace(keys=table, claims=claims, num_occupied=jnp.asarray(occupied, jnp.int32))
