@@ -136,7 +136,8 @@ def fuse_frame_row(frames, rule_name, *, capacity, repeats, voxel_size, public=T
   dev_frames = _device_frames(frames)
   state = jf.init_map(capacity=capacity, num_classes=k, voxel_size=voxel_size, rule=rule)
   t0 = time.perf_counter()
-  compiled = fusion._fuse_frame_jit.lower(state, dev_frames[0], frames.camera, rule).compile()  # pylint: disable=protected-access
+  jitted = fusion._fuse_frame_jit  # pylint: disable=protected-access
+  compiled = jitted.lower(state, dev_frames[0], frames.camera, rule).compile()
   compile_s = time.perf_counter() - t0
   fn = jf.fuse_frame if public else fusion._fuse_frame_jit  # pylint: disable=protected-access
   fuser = _Fuser(state, dev_frames, frames.camera, rule, fn)
