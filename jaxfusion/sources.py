@@ -293,7 +293,7 @@ class PrecomputedSource:
   def __len__(self) -> int:
     return len(self.files)
 
-  def predict(self, key: Optional[jax.Array] = None, image: Any = None, *,
+  def predict(self, key: Optional[jax.Array], image: Any, *,
               index: Optional[int] = None) -> Prediction:
     """Reads frame `index`.
 

@@ -93,9 +93,10 @@ def test_ensemble_source_mean_and_variance_across_members(tiny, image):
 
 def test_ensemble_source_rejects_mismatched_members(tiny):
   graphdef, params = tiny
-  other = net.init(net.SegNetConfig(num_classes=K, stem_width=8, widths=(16,), strides=(2,),
-                                    dilations=(1,), aspp_width=8, aspp_rates=(2,),
-                                    norm_groups=4), key=jax.random.key(0))[1]
+  # Shapes are all that is compared, so abstract parameters (no allocation) suffice.
+  other = net.abstract_params(net.SegNetConfig(
+      num_classes=K, stem_width=8, widths=(16,), strides=(2,), dilations=(1,), aspp_width=8,
+      aspp_rates=(2,), norm_groups=4))[1]
   with pytest.raises(ValueError, match="member 1"):
     sources.ensemble_source(sampling.deterministic_apply_fn(graphdef), [params, other])
   with pytest.raises(ValueError, match="at least one"):
