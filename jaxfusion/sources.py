@@ -299,7 +299,7 @@ class PrecomputedSource:
 
     Args:
       key: ignored.
-      image: optional; if given, its H×W must match the stored prediction's.
+      image: None, or an image whose H×W must match the stored prediction's.
       index: frame number in `[0, len(self))` (required).
 
     Returns:
