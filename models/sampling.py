@@ -35,7 +35,8 @@ def prepare_images(images) -> jax.Array:
     The same shape as float32.
 
   Raises:
-    ValueError: wrong rank or channel count, or an image smaller than 2×2.
+    ValueError: wrong rank or channel count, an image smaller than 2×2, or concrete float
+      values above 1.
     TypeError: a dtype other than uint8 or float.
   """
   if not hasattr(images, "dtype"):
@@ -53,6 +54,12 @@ def prepare_images(images) -> jax.Array:
   if images.dtype == jnp.uint8:
     return jnp.asarray(images, jnp.float32) / 255.0
   if jnp.issubdtype(images.dtype, jnp.floating):
+    if not isinstance(images, jax.core.Tracer) and images.size:
+      high = float(jnp.max(images))
+      if high > 1.0 + 1e-3:
+        raise ValueError(
+            f"float images must be RGB in [0, 1]; got values up to {high:g} (for 0-255 data "
+            "pass uint8 or divide by 255)")
     return jnp.asarray(images, jnp.float32)
   raise TypeError(
       f"expected uint8 RGB in [0, 255] or float RGB in [0, 1]; got dtype {images.dtype}")

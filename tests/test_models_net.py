@@ -131,6 +131,7 @@ def test_uint8_and_float_inputs_agree(tiny, image):
     (np.zeros((3, H, W), np.uint8), ValueError, "channels-first"),
     (np.zeros((H, W, 3), np.int32), TypeError, "uint8"),
     (np.zeros((H, W, 3), bool), TypeError, "uint8"),
+    (np.full((H, W, 3), 200.0, np.float32), ValueError, r"\[0, 1\]"),
 ])
 def test_bad_images_raise_clear_errors(tiny, bad, error, match):
   graphdef, params = tiny
