@@ -53,3 +53,11 @@ def test_deterministic_pass_runs_at_another_resolution(model):
   rgb = np.zeros((40, 56, 3), np.uint8)
   probs = sampling.deterministic_probs(model.graphdef, model.params, rgb)
   assert probs.shape == (40, 56, len(classes.CLASS_NAMES))
+
+
+def test_figure_command_writes_a_png(tmp_path):
+  from models import figure
+  # Same batch shape and M as the test above, so the sampler is not compiled again.
+  out = figure.main(["--out", str(tmp_path / "fig3.png"), "--num-views", "4",
+                     "--num-samples", "8"])
+  assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
