@@ -35,7 +35,7 @@ from . import checkpoint, evaluate, net
 class TrainConfig(NamedTuple):
   """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
 
-  steps: int = 2000
+  steps: int = 3000
   batch_size: int = 12
   learning_rate: float = 3e-3
   warmup_steps: int = 60
@@ -362,7 +362,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
   args = parse_args(argv)
   steps = args.steps if args.steps is not None else (40 if args.quick else TrainConfig().steps)
-  num_train = args.num_train if args.num_train is not None else (64 if args.quick else 800)
+  num_train = args.num_train if args.num_train is not None else (64 if args.quick else 1600)
   num_eval = args.num_eval if args.num_eval is not None else (16 if args.quick else 48)
   ints = lambda text: tuple(int(v) for v in text.split(","))
   class_names = dataset_class_names()
