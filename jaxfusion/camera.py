@@ -47,12 +47,16 @@ def backproject(depth: jax.Array, camera: Camera) -> jax.Array:
     `(H, W, 3) float32` points `(D·(u−cx)/fx, D·(v−cy)/fy, D)`.
   """
   depth = jnp.asarray(depth, jnp.float32)
+  x, y = _pixel_xy(depth, camera)
+  return jnp.stack([x, y, depth], axis=-1)
+
+
+def _pixel_xy(depth: jax.Array, camera: Camera) -> tuple[jax.Array, jax.Array]:
+  """Camera-frame `x = D·(u−cx)/fx` and `y = D·(v−cy)/fy` of every pixel, each `(H, W)`."""
   height, width = depth.shape
   u = jnp.arange(width, dtype=jnp.float32)[None, :]
   v = jnp.arange(height, dtype=jnp.float32)[:, None]
-  x = depth * ((u - camera.cx) / camera.fx)
-  y = depth * ((v - camera.cy) / camera.fy)
-  return jnp.stack([x, y, depth], axis=-1)
+  return depth * ((u - camera.cx) / camera.fx), depth * ((v - camera.cy) / camera.fy)
 
 
 def transform_points(T_a_b: jax.Array, p_b: jax.Array) -> jax.Array:
@@ -100,10 +104,7 @@ def depth_to_voxel_keys(depth: jax.Array, T_world_cam: jax.Array, camera: Camera
   depth = jnp.asarray(depth, jnp.float32)
   T = jnp.asarray(T_world_cam, jnp.float32)
   height, width = depth.shape
-  u = jnp.arange(width, dtype=jnp.float32)[None, :]
-  v = jnp.arange(height, dtype=jnp.float32)[:, None]
-  x = depth * ((u - camera.cx) / camera.fx)
-  y = depth * ((v - camera.cy) / camera.fy)
+  x, y = _pixel_xy(depth, camera)
   scaled = [jnp.floor((x * T[i, 0] + y * T[i, 1] + depth * T[i, 2] + T[i, 3]) / voxel_size)
             for i in range(3)]
   in_range = jnp.ones_like(depth, dtype=bool)
