@@ -20,6 +20,7 @@ import jax
 import numpy as np
 from flax import nnx
 
+from jaxfusion import metrics
 from jaxfusion import sources
 
 from . import checkpoint, sampling
@@ -27,6 +28,8 @@ from . import checkpoint, sampling
 
 def confusion_matrix(pred: np.ndarray, labels: np.ndarray, num_classes: int) -> np.ndarray:
   """`(K, K)` int64 counts, rows = ground truth, columns = prediction.
+
+  `jaxfusion.metrics.confusion_matrix` on pixels, with predictions clipped into `[0, K)`.
 
   Args:
     pred: int predictions of any shape.
@@ -37,20 +40,29 @@ def confusion_matrix(pred: np.ndarray, labels: np.ndarray, num_classes: int) -> 
   labels = np.asarray(labels).ravel().astype(np.int64)
   if pred.shape != labels.shape:
     raise ValueError(f"pred {pred.shape} and labels {labels.shape} differ")
-  valid = (labels >= 0) & (labels < num_classes)
-  idx = labels[valid] * num_classes + np.clip(pred[valid], 0, num_classes - 1)
-  return np.bincount(idx, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
+  return metrics.confusion_matrix(labels, np.clip(pred, 0, num_classes - 1), num_classes)
 
 
 def segmentation_metrics(conf: np.ndarray) -> dict[str, Any]:
   """Pixel accuracy, per-class IoU and mIoU (over classes present in truth or prediction)."""
   conf = np.asarray(conf, np.float64)
-  tp = np.diag(conf)
-  union = conf.sum(0) + conf.sum(1) - tp
-  iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
-  return {"pixel_accuracy": float(tp.sum() / max(conf.sum(), 1)),
+  iou = metrics.iou_from_confusion(conf)
+  return {"pixel_accuracy": float(np.trace(conf) / max(conf.sum(), 1)),
           "miou": float(np.nanmean(iou)) if np.isfinite(iou).any() else float("nan"),
           "iou": [None if np.isnan(v) else float(v) for v in iou]}
+
+
+def load_with_training_size(path, height=None, width=None):
+  """Loads a checkpoint for the embedded world's classes; image size defaults to the one it was
+  trained at (from its record).
+
+  Returns:
+    `(LoadedModel, height, width)`.
+  """
+  from . import train  # The data helpers live with the training command.
+  model = checkpoint.load(path, class_names=train.dataset_class_names())
+  data = model.metadata.get("record", {}).get("data", {})
+  return model, height or data.get("height", 96), width or data.get("width", 128)
 
 
 def auroc(scores: np.ndarray, positives: np.ndarray) -> float:
@@ -232,10 +244,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   args = p.parse_args(argv)
 
   from . import train  # The data helpers live with the training command.
-  model = checkpoint.load(args.checkpoint, class_names=train.dataset_class_names())
-  data = model.metadata.get("record", {}).get("data", {})
-  height = args.height or data.get("height", 96)
-  width = args.width or data.get("width", 128)
+  model, height, width = load_with_training_size(args.checkpoint, args.height, args.width)
   seed = args.seed if args.seed is not None else model.metadata.get("record", {}).get("seed", 0)
   key = jax.random.key(seed + 7)
   results = {"checkpoint": args.checkpoint, "height": height, "width": width}

@@ -97,10 +97,8 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
   args = p.parse_args(argv)
 
   from jaxfusion.datasets import classes
-  model = checkpoint.load(args.checkpoint, class_names=train.dataset_class_names())
-  data = model.metadata.get("record", {}).get("data", {})
-  height = args.height or data.get("height", 96)
-  width = args.width or data.get("width", 128)
+  model, height, width = evaluate.load_with_training_size(args.checkpoint, args.height,
+                                                          args.width)
   rgb, labels = train.load_domain(args.domain, args.num_views, height=height, width=width,
                                   seed=args.seed, cache_dir=args.cache)
   preds = evaluate.predict_arrays(model.graphdef, model.params, rgb,
