@@ -6,6 +6,7 @@ when asked to, and count them.
 """
 
 import os
+import warnings
 
 import cv2
 import numpy as np
@@ -82,3 +83,12 @@ def write_rgb(path: str, rgb: np.ndarray) -> None:
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
   if not cv2.imwrite(path, np.asarray(rgb, np.uint8)[..., ::-1]):
     raise OSError(f"could not write {path}")
+
+
+def warn_skipped(loader: str, skipped: list) -> None:
+  """Reports skipped frames with one warning (never silently); `loader` names the call, e.g.
+  `load_tum(PATH)`. Each entry of `skipped` has a `file` and a `reason`."""
+  if skipped:
+    warnings.warn(f"{loader}: skipped {len(skipped)} frame(s); first: {skipped[0]['file']} "
+                  f"({skipped[0]['reason']}); see sequence.info['skipped']", stacklevel=3)
+

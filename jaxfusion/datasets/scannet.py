@@ -20,7 +20,6 @@ counted the same way. A bad intrinsics file is always an error.
 
 import csv
 import os
-import warnings
 
 import cv2
 import numpy as np
@@ -185,10 +184,7 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
     poses.append(T.astype(np.float32))
     labs.append(lab)
     kept.append(i)
-  if skipped:
-    warnings.warn(f"load_scannet({path}): skipped {len(skipped)} frame(s); first: "
-                  f"{skipped[0]['file']} ({skipped[0]['reason']}); see sequence.info['skipped']",
-                  stacklevel=2)
+  files.warn_skipped(f"load_scannet({path})", skipped)
   if not kept:
     raise ValueError(f"no valid frames in ScanNet folder {path}")
   return RGBDSequence(

@@ -17,7 +17,6 @@ TUM folders carry no intrinsics: the default is the ROS default camera the bench
 """
 
 import os
-import warnings
 
 import numpy as np
 
@@ -146,10 +145,7 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
     depths.append(d)
     poses.append(quat_to_pose(values[:3], values[3:]).astype(np.float32))
     stamps.append(t)
-  if skipped:
-    warnings.warn(f"load_tum({path}): skipped {len(skipped)} frame(s); first: "
-                  f"{skipped[0]['file']} ({skipped[0]['reason']}); see sequence.info['skipped']",
-                  stacklevel=2)
+  files.warn_skipped(f"load_tum({path})", skipped)
   if not stamps:
     raise ValueError(f"no valid frames in TUM folder {path}")
   if camera is None:
