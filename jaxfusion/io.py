@@ -19,7 +19,10 @@ FORMAT_VERSION = 1
 
 
 def atomic_write(path: str, write) -> None:
-  """Calls `write(tmp_path)` and renames the result to `path` (same folder, atomic)."""
+  """Calls `write(tmp_path)` and renames the result to `path` (same folder, atomic).
+
+  The file gets the permissions an ordinary `open(path, "w")` would give it.
+  """
   folder = os.path.dirname(os.path.abspath(path))
   os.makedirs(folder, exist_ok=True)
   suffix = os.path.splitext(path)[1]
@@ -27,6 +30,10 @@ def atomic_write(path: str, write) -> None:
   os.close(fd)
   try:
     write(tmp)
+    # mkstemp creates 0600; give the result the permissions a plain open() would (0666 − umask).
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     os.replace(tmp, path)
   except BaseException:
     if os.path.exists(tmp):

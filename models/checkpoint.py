@@ -12,12 +12,13 @@ import dataclasses
 import json
 import os
 import pathlib
-import tempfile
 from typing import Any, NamedTuple, Sequence
 
 import jax
 import numpy as np
 from flax import nnx, serialization
+
+from jaxfusion import io as jf_io
 
 from . import net
 
@@ -98,17 +99,8 @@ def save(path: str | os.PathLike, params: nnx.State, *, config: net.SegNetConfig
       "params": flatten_params(params),
   }
   path = pathlib.Path(path)
-  path.parent.mkdir(parents=True, exist_ok=True)
   data = serialization.msgpack_serialize(payload)
-  fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-  try:
-    with os.fdopen(fd, "wb") as f:
-      f.write(data)
-    os.chmod(tmp, 0o644)  # mkstemp creates 0600; a checkpoint is an ordinary data file.
-    os.replace(tmp, path)
-  except BaseException:
-    pathlib.Path(tmp).unlink(missing_ok=True)
-    raise
+  jf_io.atomic_write(str(path), lambda tmp: pathlib.Path(tmp).write_bytes(data))
   return path
 
 

@@ -61,3 +61,11 @@ def test_ply_reloads_with_class_colours(tmp_path, mode):
   np.testing.assert_array_equal(vertex_colors[::per_voxel], colors[voxels["labels"]])
   centers = np.asarray(loaded.vertices).reshape(3, per_voxel, 3).mean(axis=1)
   np.testing.assert_allclose(centers, (voxels["coords"] + 0.5) * 0.1, atol=1e-6)
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+  # mkstemp would leave 0600; the result must match what a plain open() creates.
+  (tmp_path / "plain.txt").write_text("x")
+  io.atomic_write(str(tmp_path / "atomic.txt"), lambda tmp: open(tmp, "w").write("x"))
+  mode = lambda name: os.stat(tmp_path / name).st_mode & 0o777
+  assert mode("atomic.txt") == mode("plain.txt")
