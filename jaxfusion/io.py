@@ -51,8 +51,37 @@ def rule_from_metadata(meta: dict) -> rules_lib.FusionRule:
   return rules_lib.by_name(meta["name"], aggregate=meta["aggregate"], **meta["hparams"])
 
 
+def _check_trajectory(poses, camera, image_size):
+  """Validates the optional trajectory of `save_map`; returns `(poses or None, camera meta)`."""
+  if poses is None:
+    if camera is not None or image_size is not None:
+      raise ValueError("camera and image_size describe the poses: pass poses too")
+    return None, None
+  poses = np.asarray(poses, np.float32)
+  if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
+    raise ValueError(f"poses must be (T, 4, 4) camera-to-world matrices; got shape "
+                     f"{poses.shape}")
+  if not np.all(np.isfinite(poses)):
+    raise ValueError("poses must be finite")
+  if camera is None:
+    if image_size is not None:
+      raise ValueError("image_size needs the camera intrinsics too")
+    return poses, None
+  if image_size is None or len(image_size) != 2 or min(int(s) for s in image_size) < 1:
+    raise ValueError(f"image_size must be (H, W) with H, W ≥ 1 when a camera is given; got "
+                     f"{image_size!r}")
+  values = [float(v) for v in camera[:4]]
+  if not all(np.isfinite(values)) or values[0] <= 0 or values[1] <= 0:
+    raise ValueError(f"camera intrinsics must be finite with fx, fy > 0; got {values}")
+  meta = dict(zip(("fx", "fy", "cx", "cy"), values))
+  meta.update(height=int(image_size[0]), width=int(image_size[1]))
+  return poses, meta
+
+
 def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
-             class_names: Optional[Sequence[str]] = None, extra: Optional[dict] = None) -> None:
+             class_names: Optional[Sequence[str]] = None, extra: Optional[dict] = None,
+             poses: Optional[np.ndarray] = None, camera=None,
+             image_size: Optional[Sequence[int]] = None) -> None:
   """Saves a map with its metadata (classes, voxel size, rule and hyperparameters) as `.npz`.
 
   Args:
@@ -61,6 +90,11 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
     rule: the rule it was fused with (stored by name and hyperparameters).
     class_names: optional K class names.
     extra: optional JSON-able metadata (e.g. the sequence, the model).
+    poses: optional `(T, 4, 4)` camera-to-world poses of the fused frames (OpenCV camera
+      axes: +x right, +y down, +z forward), read back by `load_trajectory`.
+    camera: optional intrinsics of those frames (a `Camera` or `(fx, fy, cx, cy)`); needs
+      `poses` and `image_size`.
+    image_size: `(H, W)` of the frames, with `camera`.
   """
   if state.keys.ndim != 2:
     raise ValueError("save_map expects one map, not a batch")
@@ -68,6 +102,7 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
     raise ValueError(f"map was made for rule {state.rule_name!r}, not {rule.name!r}")
   if class_names is not None and len(class_names) != state.num_classes:
     raise ValueError(f"{len(class_names)} class names for a map of {state.num_classes} classes")
+  poses, camera_meta = _check_trajectory(poses, camera, image_size)
   meta = {
       "format_version": FORMAT_VERSION,
       "rule": rule_metadata(rule),
@@ -76,6 +111,7 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
       "max_probes": state.max_probes,
       "class_names": list(class_names) if class_names is not None else None,
       "extra": extra or {},
+      "camera": camera_meta,
   }
   arrays = {
       "keys": np.asarray(state.keys), "hits": np.asarray(state.hits),
@@ -85,6 +121,8 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
   }
   for name, value in state.rows.items():
     arrays[f"rows/{name}"] = np.asarray(value)
+  if poses is not None:
+    arrays["poses"] = poses
   arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
 
   def write(tmp):
@@ -118,6 +156,28 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
       num_dropped=jnp.asarray(data["num_dropped"]),
       voxel_size=jnp.asarray(data["voxel_size"]))
   return state, rule, meta
+
+
+def load_trajectory(path: str) -> Optional[dict]:
+  """The camera trajectory saved with a map, or None for a map saved without poses.
+
+  Maps written before poses were saved load as None.
+
+  Returns:
+    dict with `T_world_cam (T, 4, 4) float32` camera-to-world poses and `camera`: a dict of
+    `fx, fy, cx, cy, height, width`, or None when the intrinsics were not saved.
+  """
+  if not os.path.exists(path):
+    raise FileNotFoundError(f"no map file at {path}")
+  try:
+    with np.load(path) as data:
+      meta = json.loads(bytes(data["metadata"]).decode())
+      poses = np.asarray(data["poses"], np.float32) if "poses" in data.files else None
+  except (OSError, ValueError, KeyError) as e:
+    raise ValueError(f"{path} is not a jaxfusion map file ({e})") from e
+  if poses is None:
+    return None
+  return {"T_world_cam": poses, "camera": meta.get("camera")}
 
 
 def default_palette(num_classes: int) -> np.ndarray:

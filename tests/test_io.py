@@ -1,5 +1,6 @@
 """Map save/load round-trips bit-exactly; the PLY re-loads with trimesh with the right colours."""
 
+import json
 import os
 
 import jax
@@ -69,3 +70,61 @@ def test_written_files_get_ordinary_permissions(tmp_path):
   io.atomic_write(str(tmp_path / "atomic.txt"), lambda tmp: open(tmp, "w").write("x"))
   mode = lambda name: os.stat(tmp_path / name).st_mode & 0o777
   assert mode("atomic.txt") == mode("plain.txt")
+
+
+def _small_map(rng):
+  rule = jf.rules.bayes()
+  state = jf.init_map(capacity=128, num_classes=h.NUM_CLASSES, voxel_size=0.25, rule=rule)
+  return jf.fuse_frame(state, h.random_frame(rng), h.CAMERA, rule), rule
+
+
+def test_trajectory_round_trip(tmp_path):
+  rng = np.random.default_rng(1)
+  state, rule = _small_map(rng)
+  poses = np.stack([h.pose(rng) for _ in range(3)]).astype(np.float32)
+  path = str(tmp_path / "map.npz")
+  io.save_map(path, state, rule, poses=poses, camera=h.CAMERA, image_size=(h.HEIGHT, h.WIDTH))
+  traj = io.load_trajectory(path)
+  np.testing.assert_array_equal(traj["T_world_cam"], poses)
+  assert traj["camera"] == {"fx": 6.0, "fy": 6.0, "cx": 3.5, "cy": 2.5, "height": h.HEIGHT,
+                            "width": h.WIDTH}
+  loaded, _, meta = io.load_map(path)   # poses do not disturb the map itself
+  np.testing.assert_array_equal(np.asarray(loaded.keys), np.asarray(state.keys))
+  io.save_map(path, state, rule, poses=poses)   # poses without intrinsics
+  assert io.load_trajectory(path)["camera"] is None
+
+
+def test_maps_without_poses_still_load(tmp_path):
+  rng = np.random.default_rng(2)
+  state, rule = _small_map(rng)
+  path = str(tmp_path / "map.npz")
+  io.save_map(path, state, rule)
+  assert io.load_trajectory(path) is None
+  # A file written before poses existed: no "camera" entry in its metadata at all.
+  with np.load(path) as f:
+    arrays = dict(f)
+  meta = json.loads(bytes(arrays["metadata"]).decode())
+  del meta["camera"]
+  arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+  old = str(tmp_path / "old.npz")
+  np.savez(old, **arrays)
+  loaded, _, _ = io.load_map(old)
+  np.testing.assert_array_equal(np.asarray(loaded.keys), np.asarray(state.keys))
+  assert io.load_trajectory(old) is None
+  with pytest.raises(ValueError, match="not a jaxfusion map"):
+    np.savez(tmp_path / "other.npz", x=np.zeros(2))
+    io.load_trajectory(str(tmp_path / "other.npz"))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"poses": np.eye(4)}, r"\(T, 4, 4\)"),
+    ({"poses": np.full((1, 4, 4), np.nan)}, "finite"),
+    ({"camera": (1.0, 1.0, 0.0, 0.0), "image_size": (2, 2)}, "pass poses too"),
+    ({"poses": np.eye(4)[None], "camera": (1.0, 1.0, 0.0, 0.0)}, "image_size"),
+    ({"poses": np.eye(4)[None], "camera": (0.0, 1.0, 0.0, 0.0), "image_size": (2, 2)}, "fx"),
+])
+def test_save_map_rejects_bad_trajectories(tmp_path, kwargs, match):
+  state, rule = _small_map(np.random.default_rng(3))
+  with pytest.raises(ValueError, match=match):
+    io.save_map(str(tmp_path / "m.npz"), state, rule, **kwargs)
+  assert not os.path.exists(tmp_path / "m.npz")
