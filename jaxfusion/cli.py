@@ -91,7 +91,9 @@ def cmd_run(args):
   os.makedirs(args.out, exist_ok=True)
   stem = os.path.join(args.out, f"{seq.name}_{rule.name}")
   names = seq.class_names if len(seq.class_names) == num_classes else None
-  io.save_map(stem + ".npz", state, rule, class_names=names, extra={"data": args.data})
+  io.save_map(stem + ".npz", state, rule, class_names=names,
+              extra={"data": args.data, "sequence": seq.name}, poses=seq.T_world_cam,
+              camera=seq.camera, image_size=seq.image_size)
   colors = _colors(num_classes)
   io.export_ply(stem + ".ply", voxels, voxel_size=args.voxel_size, colors=colors)
   print(f"map: {len(voxels['coords'])} voxels → {stem}.npz, {stem}.ply")

@@ -200,11 +200,15 @@ def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optiona
       stem = os.path.join(out_dir, "maps", f"{seq.name}_{name}")
       io.save_map(stem + ".npz", state, rule, class_names=class_names,
                   extra={"sequence": seq.name, "model": front_end.model_id,
-                         "config": dataclasses.asdict(config)})
+                         "config": dataclasses.asdict(config)},
+                  poses=seq.T_world_cam, camera=seq.camera, image_size=seq.image_size)
       io.export_ply(stem + ".ply", voxels, voxel_size=config.voxel_size, colors=colors,
                     mode="cubes" if traj == config.trajectories[0] else "points")
       files += [stem + ".npz", stem + ".ply"]
       views[display[name]] = voxels
+    gt_npz = os.path.join(out_dir, "maps", f"{seq.name}_gt.npz")   # for `jaxfusion view`
+    io.atomic_write(gt_npz, lambda tmp, gt=gt: _save_npz(tmp, gt))
+    files.append(gt_npz)
     gt_path = os.path.join(out_dir, "maps", f"{seq.name}_gt.ply")
     io.export_ply(gt_path, gt, voxel_size=config.voxel_size, colors=colors,
                   mode="cubes" if traj == config.trajectories[0] else "points")
@@ -228,6 +232,11 @@ def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optiona
   figures.outlier_figure(path)
   files.append(path)
   return {"table": table, "results": results, "files": files, "unmatched": unmatched}
+
+
+def _save_npz(path, arrays):
+  with open(path, "wb") as f:
+    np.savez(f, **arrays)
 
 
 def _scope_note(scope, config):
