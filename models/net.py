@@ -46,11 +46,11 @@ class SegNetConfig:
 
   num_classes: int = 7
   stem_width: int = 24
-  widths: tuple[int, ...] = (24, 48, 64, 96)
-  strides: tuple[int, ...] = (1, 2, 2, 1)
-  dilations: tuple[int, ...] = (1, 1, 1, 2)
-  blocks_per_stage: int = 1
-  aspp_width: int = 64
+  widths: tuple[int, ...] = (32, 64, 128, 192)
+  strides: tuple[int, ...] = (2, 2, 1, 1)
+  dilations: tuple[int, ...] = (1, 1, 2, 4)
+  blocks_per_stage: int = 2
+  aspp_width: int = 128
   aspp_rates: tuple[int, ...] = (2, 4, 6)
   dropout_rate: float = 0.3
   norm_groups: int = 8

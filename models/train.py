@@ -20,7 +20,7 @@ import platform
 import subprocess
 import sys
 import time
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -32,18 +32,25 @@ from tqdm import tqdm
 from . import checkpoint, evaluate, net
 
 
+NUM_TRAIN = 3200  # Training views rendered by default.
+
+
 class TrainConfig(NamedTuple):
   """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
 
-  steps: int = 3000
+  steps: int = 1500
   batch_size: int = 12
   learning_rate: float = 3e-3
-  warmup_steps: int = 60
+  warmup_steps: int = 100
   weight_decay: float = 1e-4
   clip_norm: float = 1.0
   class_weight_power: float = 0.5
   class_weight_max: float = 8.0
   color_strength: float = 1.0
+  blur_prob: float = 0.5
+  blur_max_sigma: float = 1.5
+  noise_max: float = 0.04
+  zoom_max: float = 1.4
 
 
 def class_weights(labels: np.ndarray, num_classes: int, *, power: float = 0.5,
@@ -84,15 +91,76 @@ def _hue_rotation(theta: jax.Array) -> jax.Array:
   return jnp.linalg.inv(to_yiq) @ rot @ to_yiq
 
 
+def gaussian_blur(image: jax.Array, sigma: jax.Array, *, radius: int = 3) -> jax.Array:
+  """Separable Gaussian blur with a traced standard deviation (reflect padding).
+
+  Args:
+    image: `(H, W, C)` float32.
+    sigma: scalar standard deviation in pixels; values <= 0.05 leave the image unchanged.
+    radius: half-width of the `(2 radius + 1)`-tap kernel.
+
+  Returns:
+    `(H, W, C)` float32.
+  """
+  offsets = jnp.arange(-radius, radius + 1, dtype=jnp.float32)
+  safe = jnp.maximum(sigma, 0.05)
+  taps = jnp.exp(-0.5 * (offsets / safe) ** 2)
+  taps = jnp.where(sigma > 0.05, taps / jnp.sum(taps), (offsets == 0).astype(jnp.float32))
+  h, w = image.shape[:2]
+  padded = jnp.pad(image, ((radius, radius), (0, 0), (0, 0)), mode="reflect")
+  image = sum(taps[i] * padded[i:i + h] for i in range(2 * radius + 1))
+  padded = jnp.pad(image, ((0, 0), (radius, radius), (0, 0)), mode="reflect")
+  return sum(taps[i] * padded[:, i:i + w] for i in range(2 * radius + 1))
+
+
+def random_zoom(key: jax.Array, image: jax.Array, label: jax.Array, max_zoom: float
+                ) -> tuple[jax.Array, jax.Array]:
+  """Zooms into a random window (scale in `[1, max_zoom]`, never outside the image).
+
+  Colour is resampled bilinearly, labels by nearest neighbour, so the label set is unchanged.
+
+  Args:
+    key: PRNG key.
+    image: `(H, W, 3)` float32.
+    label: `(H, W)` int32.
+    max_zoom: largest magnification; 1 disables the zoom.
+
+  Returns:
+    `(image, label)` of the same shapes.
+  """
+  k_scale, k_y, k_x = jax.random.split(key, 3)
+  h, w = label.shape
+  scale = jax.random.uniform(k_scale, (), minval=1.0, maxval=max_zoom)
+  # Window of size (h / scale, w / scale) whose top-left corner keeps it inside the image.
+  y0 = jax.random.uniform(k_y, ()) * (h - h / scale)
+  x0 = jax.random.uniform(k_x, ()) * (w - w / scale)
+  rows = y0 + (jnp.arange(h, dtype=jnp.float32) + 0.5) / scale - 0.5
+  cols = x0 + (jnp.arange(w, dtype=jnp.float32) + 0.5) / scale - 0.5
+  rr, cc = jnp.meshgrid(jnp.clip(rows, 0, h - 1), jnp.clip(cols, 0, w - 1), indexing="ij")
+  image = jnp.stack([jax.scipy.ndimage.map_coordinates(image[..., c], [rr, cc], order=1)
+                     for c in range(image.shape[-1])], axis=-1)
+  label = label[jnp.round(rr).astype(jnp.int32), jnp.round(cc).astype(jnp.int32)]
+  return image, label
+
+
 def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
-            strength: float = 1.0) -> tuple[jax.Array, jax.Array]:
-  """Random flip, shifted crop (reflect-padded), colour randomisation and noise, per image.
+            strength: float = 1.0, blur_prob: float = 0.0, blur_max_sigma: float = 1.5,
+            noise_max: float = 0.02, zoom_max: float = 1.0) -> tuple[jax.Array, jax.Array]:
+  """Random flip, shifted crop, zoom, colour randomisation, blur and noise, per image.
+
+  All of it is generic photometric / geometric augmentation: nothing here is derived from the
+  shifted test domain's appearance.
 
   Args:
     key: PRNG key.
     images: `(B, H, W, 3)` float32 in [0, 1].
     labels: `(B, H, W)` int32.
-    strength: scale of the colour randomisation (0: geometry and noise only).
+    strength: scale of the colour randomisation (0: geometry, blur and noise only).
+    blur_prob: probability of a Gaussian blur with sigma uniform in `[0, blur_max_sigma]` px
+      (defocus, motion, resolution loss).
+    blur_max_sigma: largest blur standard deviation in pixels.
+    noise_max: per-image sensor-noise standard deviation drawn uniformly in `[0, noise_max]`.
+    zoom_max: largest zoom-in factor (objects seen closer); 1 disables it.
 
   Returns:
     Augmented `(images, labels)` of the same shapes and dtypes.
@@ -100,7 +168,7 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
 
   def one(k, image, label):
     (k_flip, k_dx, k_dy, k_gain, k_bright, k_con, k_sat, k_noise, k_hue, k_hue_on, k_perm,
-     k_perm_on, k_gray, k_gamma) = jax.random.split(k, 14)
+     k_perm_on, k_gray, k_gamma, k_zoom, k_blur, k_blur_on, k_noise_level) = jax.random.split(k, 18)
     flip = jax.random.bernoulli(k_flip)
     image = jnp.where(flip, image[:, ::-1], image)
     label = jnp.where(flip, label[:, ::-1], label)
@@ -112,6 +180,8 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
     dx = jax.random.randint(k_dx, (), 0, 2 * pad_w + 1)
     image = jax.lax.dynamic_slice(image_p, (dy, dx, 0), (h, w, 3))
     label = jax.lax.dynamic_slice(label_p, (dy, dx), (h, w))
+    if zoom_max > 1.0:
+      image, label = random_zoom(k_zoom, image, label, zoom_max)
     if strength > 0:
       # Colour randomisation so that the net leans on shape and layout rather than on the
       # training palette: hue rotation, channel shuffles, grey-scale, gamma, saturation,
@@ -133,7 +203,12 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
       image = (image - 0.5) * contrast + 0.5 + bright
       image = image * (1.0 + strength * jax.random.uniform(k_gain, (3,), minval=-0.2,
                                                           maxval=0.2))
-    image = image + 0.02 * jax.random.normal(k_noise, image.shape)
+    if blur_prob > 0:
+      sigma = jnp.where(jax.random.bernoulli(k_blur_on, blur_prob),
+                        jax.random.uniform(k_blur, (), minval=0.0, maxval=blur_max_sigma), 0.0)
+      image = gaussian_blur(image, sigma)
+    noise = jax.random.uniform(k_noise_level, (), minval=0.0, maxval=noise_max)
+    image = image + noise * jax.random.normal(k_noise, image.shape)
     return jnp.clip(image, 0.0, 1.0), label
 
   keys = jax.random.split(key, images.shape[0])
@@ -170,12 +245,12 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
                      optax.adamw(schedule, weight_decay=cfg.weight_decay))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1), static_argnames="color_strength",
+@functools.partial(jax.jit, static_argnums=(0, 1), static_argnames="augmentation",
                    donate_argnums=(2, 3))
 def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
                params: nnx.State, opt_state: optax.OptState, key: jax.Array,
                images: jax.Array, labels: jax.Array, weights: jax.Array, *,
-               color_strength: float = 1.0):
+               augmentation: tuple[tuple[str, float], ...] = ()):
   """One AdamW step on a batch (augmented here, dropout on).
 
   Args:
@@ -187,13 +262,14 @@ def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
     images: `(B, H, W, 3)` uint8.
     labels: `(B, H, W)` int32.
     weights: `(K,)` float32 class weights.
-    color_strength: static; scale of the colour augmentation.
+    augmentation: static `((name, value), ...)` keyword arguments of `augment` (see
+      `augment_kwargs`); empty means `augment`'s defaults.
 
   Returns:
     `(params, opt_state, loss)`.
   """
   k_aug, k_drop = jax.random.split(key)
-  x, y = augment(k_aug, images.astype(jnp.float32) / 255.0, labels, strength=color_strength)
+  x, y = augment(k_aug, images.astype(jnp.float32) / 255.0, labels, **dict(augmentation))
 
   def loss_fn(p):
     logits = net.apply(graphdef, p, k_drop, x, deterministic=False)
@@ -204,9 +280,17 @@ def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
   return optax.apply_updates(params, updates), opt_state, loss
 
 
+def augment_kwargs(cfg: TrainConfig) -> tuple[tuple[str, float], ...]:
+  """The augmentation settings of `cfg` as hashable keyword arguments of `augment`."""
+  return (("strength", float(cfg.color_strength)), ("blur_prob", float(cfg.blur_prob)),
+          ("blur_max_sigma", float(cfg.blur_max_sigma)), ("noise_max", float(cfg.noise_max)),
+          ("zoom_max", float(cfg.zoom_max)))
+
+
 def fit(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarray, labels: np.ndarray, *,
         key: jax.Array, cfg: TrainConfig, weights: np.ndarray | None = None,
-        progress: bool = True) -> tuple[nnx.State, np.ndarray]:
+        progress: bool = True, callback: Callable[[int, nnx.State, np.ndarray], None] | None = None,
+        callback_every: int = 0) -> tuple[nnx.State, np.ndarray]:
   """Trains on in-memory arrays; batches are drawn without replacement per epoch.
 
   Args:
@@ -218,10 +302,16 @@ def fit(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarray, labels: n
     cfg: optimisation hyperparameters.
     weights: `(K,)` class weights; default from `class_weights(labels)`.
     progress: show a tqdm bar.
+    callback: called as `callback(steps_done, params, losses[:steps_done])` every
+      `callback_every` steps (e.g. to save a checkpoint a partial run can use); it must not
+      keep references to `params` (the next step donates them).
+    callback_every: period of `callback` in steps; 0 never calls it.
 
   Returns:
     `(params, losses)` with `losses` `(steps,)` float32.
   """
+  if callback_every < 0:
+    raise ValueError(f"callback_every must be >= 0; got {callback_every}")
   images = np.asarray(images)
   labels = np.asarray(labels, np.int32)
   if images.dtype != np.uint8 or images.ndim != 4 or images.shape[-1] != 3:
@@ -251,10 +341,12 @@ def fit(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarray, labels: n
     params, opt_state, loss = train_step(
         graphdef, optimizer, params, opt_state, jax.random.fold_in(key, step),
         jnp.asarray(images[idx]), jnp.asarray(labels[idx]), weights,
-        color_strength=cfg.color_strength)
+        augmentation=augment_kwargs(cfg))
     losses[step] = float(loss)
     if progress and (step % 10 == 0 or step == cfg.steps - 1):
       bar.set_postfix(loss=f"{losses[max(step - 9, 0):step + 1].mean():.3f}")
+    if callback is not None and callback_every and (step + 1) % callback_every == 0:
+      callback(step + 1, params, losses[:step + 1])
   return params, losses
 
 
@@ -339,8 +431,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p.add_argument("--batch-size", type=int, default=TrainConfig().batch_size)
   p.add_argument("--lr", type=float, default=TrainConfig().learning_rate)
   p.add_argument("--weight-decay", type=float, default=TrainConfig().weight_decay)
+  p.add_argument("--warmup", type=int, default=TrainConfig().warmup_steps)
   p.add_argument("--color-strength", type=float, default=TrainConfig().color_strength,
                  help="scale of the colour augmentation (0 = geometry and noise only)")
+  p.add_argument("--blur-prob", type=float, default=TrainConfig().blur_prob)
+  p.add_argument("--blur-max-sigma", type=float, default=TrainConfig().blur_max_sigma)
+  p.add_argument("--noise-max", type=float, default=TrainConfig().noise_max)
+  p.add_argument("--zoom-max", type=float, default=TrainConfig().zoom_max)
+  p.add_argument("--save-every", type=int, default=250,
+                 help="steps between partial checkpoints (<out>.partial.msgpack); 0 = never")
   p.add_argument("--height", type=int, default=96)
   p.add_argument("--width", type=int, default=128)
   p.add_argument("--num-train", type=int, default=None)
@@ -355,6 +454,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p.add_argument("--dilations", default=",".join(map(str, net.SegNetConfig.dilations)))
   p.add_argument("--blocks-per-stage", type=int, default=net.SegNetConfig.blocks_per_stage)
   p.add_argument("--aspp-width", type=int, default=net.SegNetConfig.aspp_width)
+  p.add_argument("--aspp-rates", default=",".join(map(str, net.SegNetConfig.aspp_rates)))
   p.add_argument("--dropout", type=float, default=net.SegNetConfig.dropout_rate)
   return p.parse_args(argv)
 
@@ -362,7 +462,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
   args = parse_args(argv)
   steps = args.steps if args.steps is not None else (40 if args.quick else TrainConfig().steps)
-  num_train = args.num_train if args.num_train is not None else (64 if args.quick else 1600)
+  num_train = args.num_train if args.num_train is not None else (64 if args.quick else NUM_TRAIN)
   num_eval = args.num_eval if args.num_eval is not None else (16 if args.quick else 48)
   ints = lambda text: tuple(int(v) for v in text.split(","))
   class_names = dataset_class_names()
@@ -370,9 +470,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       num_classes=len(class_names), stem_width=args.stem_width, widths=ints(args.widths),
       strides=ints(args.strides), dilations=ints(args.dilations),
       blocks_per_stage=args.blocks_per_stage, aspp_width=args.aspp_width,
-      dropout_rate=args.dropout)
+      aspp_rates=ints(args.aspp_rates), dropout_rate=args.dropout)
   cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
-                    weight_decay=args.weight_decay, color_strength=args.color_strength)
+                    warmup_steps=args.warmup, weight_decay=args.weight_decay,
+                    color_strength=args.color_strength, blur_prob=args.blur_prob,
+                    blur_max_sigma=args.blur_max_sigma, noise_max=args.noise_max,
+                    zoom_max=args.zoom_max)
   size = dict(height=args.height, width=args.width, cache_dir=args.cache)
 
   t0 = time.time()
@@ -394,9 +497,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   graphdef, params = net.init(config, key=k_init)
   print(f"SegNet: {net.count_params(params):,} parameters, output stride "
         f"{config.output_stride}", flush=True)
+  partial_path = pathlib.Path(args.out).with_suffix(".partial.msgpack")
   t1 = time.time()
+
+  def save_partial(done, current, losses_so_far):
+    elapsed = time.time() - t1
+    print(f"step {done}/{steps}: loss(last 50) {losses_so_far[-50:].mean():.3f}, "
+          f"{done / elapsed:.2f} steps/s, elapsed {elapsed / 60:.1f} min, "
+          f"ETA {(steps - done) * elapsed / done / 60:.1f} min", flush=True)
+    checkpoint.save(partial_path, current, config=config, class_names=class_names,
+                    record={"partial": True, "steps_done": done, "train_config": cfg._asdict(),
+                            "command": "python -m models.train " + " ".join(
+                                sys.argv[1:] if argv is None else argv)})
+
   params, losses = fit(graphdef, params, train_x, train_y, key=k_train, cfg=cfg,
-                       weights=weights)
+                       weights=weights, callback=save_partial, callback_every=args.save_every)
   train_s = time.time() - t1
   print(f"trained {steps} steps in {train_s:.0f} s; loss {losses[:10].mean():.3f} -> "
         f"{losses[-10:].mean():.3f}", flush=True)
@@ -438,6 +553,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   record_path = pathlib.Path(out).with_suffix(".json")
   record_path.write_text(json.dumps({"config": config.to_dict(), "class_names": class_names,
                                      "record": record}, indent=2) + "\n")
+  partial_path.unlink(missing_ok=True)  # The finished checkpoint supersedes it.
   print(f"wrote {out} ({pathlib.Path(out).stat().st_size / 1e6:.2f} MB) and {record_path}",
         flush=True)
   return record
