@@ -22,13 +22,24 @@ def pixel_points(depth, T_world_cam, fx, fy, cx, cy):
       yield (v, u), T[:3, :3] @ p_cam + T[:3, 3]
 
 
+def per_class_regularize(p, beta):
+  """SPEC rule 7, one pixel: `p̃_i = ((1−β_i) p_i + β_i/K) / Z`, `Z = Σ_i (…)` (uniform if Z = 0)."""
+  K = len(p)
+  mixed = np.array([(1.0 - float(beta[i])) * p[i] + float(beta[i]) / K for i in range(K)])
+  Z = sum(mixed)
+  return mixed / Z if Z > 0 else np.full(K, 1.0 / K)
+
+
 class ReferenceMap:
-  """One map under one rule, by SPEC.md. `rule` is one of the six paper names."""
+  """One map under one rule, by SPEC.md. `rule` is one of the six paper names. `beta`, `eps` and
+  `alpha0` may be scalars or per-class sequences of length K (SPEC rule 7)."""
 
   def __init__(self, rule, num_classes, voxel_size, *, beta=0.3, eps=1e-12,
                alpha0=-math.log(1e-3), aggregate="sum"):
     self.rule, self.K, self.voxel_size = rule, num_classes, voxel_size
-    self.beta, self.eps, self.alpha0, self.aggregate = beta, eps, alpha0, aggregate
+    as_param = lambda x: float(x) if np.ndim(x) == 0 else np.asarray(x, np.float64)
+    self.beta, self.eps, self.alpha0 = as_param(beta), as_param(eps), as_param(alpha0)
+    self.aggregate = aggregate
     self.voxels = {}
 
   def _new_voxel(self):
@@ -62,8 +73,10 @@ class ReferenceMap:
     if rule == "sum_labels":
       voxel["score"] += self._reduce([np.eye(K)[int(np.argmax(p))] for p, _ in pixels])
       return
-    if rule in ("robust_r", "robust_dr"):
+    if rule in ("robust_r", "robust_dr") and np.ndim(self.beta) == 0:
       pixels = [((1 - self.beta) * p + self.beta / K, s) for p, s in pixels]
+    elif rule in ("robust_r", "robust_dr"):   # SPEC rule 7: per-class β, renormalised by Z_j
+      pixels = [(per_class_regularize(p, self.beta), s) for p, s in pixels]
     logs = [np.log(np.maximum(p, TINY)) for p, _ in pixels]
     if rule in ("bayes", "robust_r"):
       logp = voxel["logp"] + self._reduce(logs)

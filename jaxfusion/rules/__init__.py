@@ -2,6 +2,7 @@
 
     rules.sum_probs()   rules.sum_labels()   rules.bayes()
     rules.robust(beta=0.3, eps=1e-12, regularize=True, dirichlet=True)   # D+R
+    rules.robust(beta=[0.1, 0.4, …])   # per-class β (and ε, α₀): one value per class, (K,)
 """
 
 from jaxfusion.rules.base import AGGREGATIONS

@@ -12,8 +12,9 @@ A rule is split into kernels written for one item; the engine vmaps them at the 
 
 `fuse_frame` only ever calls these five, so a new rule is a new set of functions, never a new
 branch in the engine. Hyperparameters users tune or differentiate (β, ε, α₀) are leaves of
-`hparams`; everything that changes code paths (which functions, the aggregation mode) is static,
-so changing β never recompiles and a batch of rules with different β can be vmapped.
+`hparams` (the robust rules' β, ε and α₀ may be scalars `()` or per class `(K,)`); everything
+that changes code paths (which functions, the aggregation mode) is static, so changing β never
+recompiles and a batch of rules with different β can be vmapped.
 """
 
 from typing import Any, Callable, NamedTuple, Optional
@@ -64,6 +65,31 @@ def as_leaf(value: Any, name: str) -> jax.Array:
   if leaf.ndim != 0:
     raise ValueError(f"{name} must be a scalar; got shape {leaf.shape} (stack rules to batch)")
   return leaf
+
+
+def as_class_leaf(value: Any, name: str) -> jax.Array:
+  """A hyperparameter that may be given per class: a float32 scalar `()` or vector `(K,)` leaf.
+
+  K is not known here; `check_class_shapes` checks it against the map's K at `init_map` and
+  at trace time of `fuse_frame` (shapes are static, so the check also works on traced values).
+  """
+  leaf = jnp.asarray(value, jnp.float32)
+  if leaf.ndim > 1:
+    raise ValueError(f"{name} must be a scalar or a (K,) vector with one value per class; got "
+                     f"shape {leaf.shape} (stack rules to batch)")
+  if leaf.ndim == 1 and leaf.shape[0] < 2:
+    raise ValueError(f"{name} given per class needs one value per class (K >= 2); got shape "
+                     f"{leaf.shape}")
+  return leaf
+
+
+def check_class_shapes(hparams: dict, num_classes: int, names: tuple) -> None:
+  """Raises ValueError if a per-class hyperparameter in `names` is not `()` or `(K,)`."""
+  for name in names:
+    shape = jnp.shape(hparams[name])
+    if shape not in ((), (num_classes,)):
+      raise ValueError(f"{name} has shape {shape} but the map has K = {num_classes} classes; "
+                       f"give a scalar or one value per class ({num_classes},)")
 
 
 def is_concrete(x: Any) -> bool:

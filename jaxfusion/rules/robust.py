@@ -8,6 +8,20 @@ and both together, D+R.
        `ᾱ_0 = α₀`, default `−log(1e-3)` as the authors' released code starts every voxel's
        variance at 1e-3; `α₀ = 0` is the literal reading of the equations.
 - D+R: D on p̃.
+
+**Per-class hyperparameters** (SPEC rule 7; the paper's future work). β, ε and α₀ may each be a
+scalar or a `(K,)` vector with one value per class:
+- β per class: `p̃_j,i = ((1−β_i) p̄_j,i + β_i/K) / Z_j` with `Z_j = Σ_i ((1−β_i) p̄_j,i + β_i/K)`,
+  so p̃_j stays a distribution (it is the class-i mixing weight, not the β of the pixel's
+  predicted class, which would make p̃ a non-smooth function of p̄ at argmax ties). A scalar β
+  takes the old path without Z (bit-identical to rule 4); all-equal β_i give Z_j = 1 up to
+  rounding.
+- ε per class: `α_j,i = −log(var_j,i + ε_i)` — elementwise already, so free.
+- α₀ per class: `ᾱ_0,i = α₀_i` — natural, because ᾱ is a per-class running maximum.
+All three stay traced leaves whatever their shape: changing their values never recompiles (a
+new shape does, once), and a stack of per-class rules has `(R, K)` leaves for `jax.vmap`.
+A vector whose length is not the map's K raises at `init_map` and when `fuse_frame` traces.
+
 Variances are clipped to [0, 0.25] (the range of a variance of probabilities), so α ≥
 −log(0.25+ε) > 0 and ᾱ > 0 after one hit. The sum over j is taken per frame, which makes the
 update independent of the order of pixels within a frame (the released C++ code fuses pixels one
@@ -18,6 +32,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxfusion import numerics
 from jaxfusion.rules import base
@@ -28,9 +43,17 @@ DEFAULT_EPS = 1e-12
 DEFAULT_ALPHA0 = -math.log(1e-3)
 
 
+PER_CLASS_HPARAMS = ("beta", "eps", "alpha0")
+
+
 def regularize(probs, beta):
-  """`p̃ = (1−β) p + β/K` for a `(K,)` distribution."""
-  return (1.0 - beta) * probs + beta / probs.shape[-1]
+  """`p̃ = (1−β) p + β/K` for a `(K,)` distribution and a scalar β (rule 4); for a per-class
+  `(K,)` β, `p̃_i = ((1−β_i) p_i + β_i/K) / Z` with `Z = Σ_i ((1−β_i) p_i + β_i/K)` (rule 7;
+  uniform where Z = 0, i.e. an all-zero p with β = 0)."""
+  mixed = (1.0 - beta) * probs + beta / probs.shape[-1]
+  if jnp.ndim(beta) == 0:
+    return mixed   # the scalar path stays exactly rule 4 (Z = 1, no division)
+  return numerics.safe_normalize(mixed)
 
 
 def concentration(var, eps):
@@ -38,8 +61,18 @@ def concentration(var, eps):
   return -jnp.log(jnp.clip(var, 0.0, 0.25) + eps)
 
 
+def _check_shapes(hparams, num_classes):
+  base.check_class_shapes(hparams, num_classes, PER_CLASS_HPARAMS)
+
+
+def _r_init(num_classes, hparams):
+  _check_shapes(hparams, num_classes)
+  return log_init(num_classes, hparams)
+
+
 def _r_observe(probs, var, hparams):
   del var
+  _check_shapes(hparams, probs.shape[-1])
   return base.PixelTerms(
       sums={"loglik": numerics.safe_log(regularize(probs, hparams["beta"]))}, maxes={})
 
@@ -51,16 +84,19 @@ def _dirichlet_terms(probs_for_log, var, hparams):
 
 
 def _d_observe(probs, var, hparams):
+  _check_shapes(hparams, probs.shape[-1])
   return _dirichlet_terms(probs, var, hparams)
 
 
 def _dr_observe(probs, var, hparams):
+  _check_shapes(hparams, probs.shape[-1])
   return _dirichlet_terms(regularize(probs, hparams["beta"]), var, hparams)
 
 
 def _dirichlet_init(num_classes, hparams):
+  _check_shapes(hparams, num_classes)
   row = log_init(num_classes, hparams)
-  row["alpha_bar"] = jnp.full(num_classes, hparams["alpha0"], jnp.float32)
+  row["alpha_bar"] = jnp.full(num_classes, hparams["alpha0"], jnp.float32)   # () or (K,)
   return row
 
 
@@ -78,13 +114,25 @@ def _dirichlet_confidence(row):
   return row["alpha_bar"]
 
 
+def _shown(x):
+  x = np.asarray(x, np.float64)
+  return float(x) if x.ndim == 0 else x.tolist()
+
+
 def _check_hparams(beta, eps, alpha0):
-  if base.is_concrete(beta) and not 0.0 <= float(beta) <= 1.0:
-    raise ValueError(f"beta must lie in [0, 1]; got {float(beta)}")
-  if base.is_concrete(eps) and not (math.isfinite(float(eps)) and float(eps) > 0):
-    raise ValueError(f"eps must be a positive finite number; got {float(eps)}")
-  if base.is_concrete(alpha0) and not (math.isfinite(float(alpha0)) and float(alpha0) >= 0):
-    raise ValueError(f"alpha0 must be a non-negative finite number; got {float(alpha0)}")
+  """Value checks where the values are concrete (scalars or per-class vectors, elementwise)."""
+  if base.is_concrete(beta):
+    b = np.asarray(beta, np.float64)
+    if not np.all((b >= 0.0) & (b <= 1.0)):
+      raise ValueError(f"beta must lie in [0, 1]; got {_shown(b)}")
+  if base.is_concrete(eps):
+    e = np.asarray(eps, np.float64)
+    if not np.all(np.isfinite(e) & (e > 0)):
+      raise ValueError(f"eps must be a positive finite number; got {_shown(e)}")
+  if base.is_concrete(alpha0):
+    a = np.asarray(alpha0, np.float64)
+    if not np.all(np.isfinite(a) & (a >= 0)):
+      raise ValueError(f"alpha0 must be a non-negative finite number; got {_shown(a)}")
 
 
 def robust(*, beta=DEFAULT_BETA, eps=DEFAULT_EPS, regularize=True, dirichlet=True,
@@ -92,17 +140,27 @@ def robust(*, beta=DEFAULT_BETA, eps=DEFAULT_EPS, regularize=True, dirichlet=Tru
   """The paper's robust fusion: R (`dirichlet=False`), D (`regularize=False`) or D+R (both).
 
   Args:
-    beta: regularisation weight β ∈ [0, 1] (a traced leaf; used by R and D+R).
-    eps: ε > 0 added to variances before the log (a traced leaf; used by D and D+R).
+    beta: regularisation weight β ∈ [0, 1] (a traced leaf; used by R and D+R): a scalar, or a
+      `(K,)` vector of per-class weights (`p̃_i ∝ (1−β_i) p̄_i + β_i/K`, see the module doc).
+    eps: ε > 0 added to variances before the log (a traced leaf; used by D and D+R); scalar or
+      `(K,)`.
     regularize: apply `p̃ = (1−β) p̄ + β/K`.
     dirichlet: weight observations by their concentration `α = −log(var + ε)`; needs
       `Frame.var`.
-    alpha0: prior concentration ᾱ₀ ≥ 0 (a traced leaf; used by D and D+R).
+    alpha0: prior concentration ᾱ₀ ≥ 0 (a traced leaf; used by D and D+R); scalar or `(K,)`.
     aggregate: "sum" (the paper's Σ_j over a voxel's pixels) or "mean" (one observation per
       voxel per frame: mean of the weighted log-likelihoods, max of α).
 
   Returns:
     A FusionRule named "robust_r", "robust_d" or "robust_dr".
+
+  Raises:
+    ValueError: β outside [0, 1], ε ≤ 0 or α₀ < 0 (checked where concrete), or a
+      hyperparameter that is neither a scalar nor a vector. A vector's length is checked
+      against K by `init_map` and `fuse_frame`.
+
+  Example:
+    >>> rules.robust(beta=[0.1, 0.5, 0.3])   # per-class β for a 3-class map
   """
   if not (regularize or dirichlet):
     raise ValueError(
@@ -110,14 +168,14 @@ def robust(*, beta=DEFAULT_BETA, eps=DEFAULT_EPS, regularize=True, dirichlet=Tru
         "use rules.bayes()")
   _check_hparams(beta, eps, alpha0)
   hparams = {
-      "beta": base.as_leaf(beta, "beta"),
-      "eps": base.as_leaf(eps, "eps"),
-      "alpha0": base.as_leaf(alpha0, "alpha0"),
+      "beta": base.as_class_leaf(beta, "beta"),
+      "eps": base.as_class_leaf(eps, "eps"),
+      "alpha0": base.as_class_leaf(alpha0, "alpha0"),
   }
   aggregate = base.check_aggregate(aggregate)
   if not dirichlet:
     return base.FusionRule(
-        hparams=hparams, name="robust_r", init=log_init, observe=_r_observe, update=log_update,
+        hparams=hparams, name="robust_r", init=_r_init, observe=_r_observe, update=log_update,
         posterior=log_posterior, confidence=None, requires_var=False, aggregate=aggregate)
   return base.FusionRule(
       hparams=hparams, name="robust_dr" if regularize else "robust_d", init=_dirichlet_init,
