@@ -1,4 +1,4 @@
-"""The `jaxfusion` command: demo, run, eval, export, list, render, figure (and sweep/tune-beta).
+"""The `jaxfusion` command: demo, run, eval, export, list, render, figure, view, sweep, tune-beta.
 
 Errors a user can fix (a wrong --data spec, an unreadable folder, an unknown rule, a mismatched
 checkpoint or cache) are printed as one line and exit with status 2, without a traceback.
@@ -247,6 +247,9 @@ def build_parser():
                      ("render", "render an embedded frame as RGB | depth | labels PNG "
                                 "(see `python -m jaxfusion.datasets render --help`)")):
     sub.add_parser(name, help=text, add_help=False).set_defaults(func=None)
+
+  from jaxfusion.viewer import command as view_command   # imports viser only when it runs
+  view_command.add_parser(sub)
 
   try:
     from jaxfusion import tune

@@ -1,0 +1,39 @@
+"""The `jaxfusion view` subcommand (imports viser only when it runs)."""
+
+from jaxfusion.viewer import scene_data as sd
+
+
+def add_parser(subparsers) -> None:
+  """Registers `view` on the `jaxfusion` command's subparsers."""
+  p = subparsers.add_parser(
+      "view", help="interactive 3-D web viewer of saved maps (needs the `viewer` extra)",
+      description="Serve saved maps (.npz from `jaxfusion run` / `demo`, or folders holding "
+                  "them) in a local web page: voxels coloured by class, entropy, Dirichlet "
+                  "confidence, hit count or right/wrong against a saved GT map.")
+  p.add_argument("paths", nargs="+", metavar="PATH", help="map .npz files or output folders")
+  p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+  p.add_argument("--port", type=int, default=8080,
+                 help="port (default 8080; the next free one if taken)")
+  p.add_argument("--max-cubes", type=int, default=sd.DEFAULT_MAX_CUBES,
+                 help="draw voxels as cubes up to this many, as points beyond")
+  p.set_defaults(func=run)
+
+
+def run(args) -> None:
+  """Loads the maps and serves them until Ctrl-C.
+
+  Raises:
+    ValueError: viser is not installed (the message says what to install), bad options, a
+      file that is not a map, maps of different class lists.
+    FileNotFoundError: a path that does not exist.
+  """
+  if not 0 <= args.port <= 65535:
+    raise ValueError(f"--port must be in [0, 65535]; got {args.port}")
+  if args.max_cubes < 0:
+    raise ValueError(f"--max-cubes must be ≥ 0; got {args.max_cubes}")
+  try:
+    import viser  # noqa: F401  (the optional dependency)
+  except ImportError:
+    raise ValueError(sd.INSTALL_HINT) from None
+  from jaxfusion.viewer import server
+  server.serve(args.paths, host=args.host, port=args.port, max_cubes=args.max_cubes)

@@ -1,0 +1,437 @@
+"""What the 3-D viewer shows, computed without the viewer: finding and loading saved maps,
+validating them, colouring voxels in each colour mode, the legend, filtering by class and
+height, and choosing cubes or points. Nothing here imports viser.
+
+Shape legend: N voxels, K classes, T frames.
+"""
+
+import dataclasses
+import html
+import os
+from typing import Iterable, Optional, Sequence
+
+import numpy as np
+
+INSTALL_HINT = ("the viewer needs viser: pip install 'jaxfusion[viewer]' "
+                "(or pip install 'viser>=1.1,<2')")
+
+# Colour modes: key → title shown in the viewer.
+COLOR_MODES = {
+    "class": "class",
+    "entropy": "entropy",
+    "confidence": "Dirichlet confidence ᾱ",
+    "hits": "hit count",
+    "correct": "right / wrong vs GT",
+}
+RIGHT_COLOR = (40, 170, 70)
+WRONG_COLOR = (220, 40, 40)
+UNSCORED_COLOR = (175, 175, 175)   # a voxel the GT map does not have (or ignores)
+DEFAULT_MAX_CUBES = 200_000
+COLORMAP = "viridis"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ViewMap:
+  """One saved map, read out for display.
+
+  Attributes:
+    path: the `.npz` file.
+    name: what the viewer calls it: the rule's paper name, β and aggregation ("D+R β=0.3").
+    sequence: the sequence it was fused from (maps of one sequence share a view).
+    class_names: the K class names (or "0" … "K-1" when the map has none).
+    voxel_size: voxel edge in metres.
+    centers: `(N, 3) float32` voxel centres in metres.
+    labels: `(N,) int32` predicted class.
+    hits: `(N,) int32` pixels fused into each voxel.
+    entropy: `(N,) float32` posterior entropy in nats.
+    confidence: `(N,) float32` Dirichlet confidence ᾱ of the predicted class, or None for
+      rules without one.
+    gt_labels: `(N,) int32` GT label of each voxel (−1 where the GT map has none), or None
+      when no GT map is saved beside the map.
+    poses: `(T, 4, 4) float32` camera-to-world poses of the fused frames, or None.
+    camera: intrinsics of those frames (`fx, fy, cx, cy, height, width`), or None.
+  """
+  path: str
+  name: str
+  sequence: str
+  class_names: tuple
+  voxel_size: float
+  centers: np.ndarray
+  labels: np.ndarray
+  hits: np.ndarray
+  entropy: np.ndarray
+  confidence: Optional[np.ndarray] = None
+  gt_labels: Optional[np.ndarray] = None
+  poses: Optional[np.ndarray] = None
+  camera: Optional[dict] = None
+
+  def __len__(self) -> int:
+    return int(len(self.labels))
+
+  @property
+  def num_classes(self) -> int:
+    return len(self.class_names)
+
+
+def is_map_file(path: str) -> bool:
+  """True if `path` is a `.npz` written by `jaxfusion.io.save_map` (reads only its index)."""
+  if not os.path.isfile(path):
+    return False
+  try:
+    with np.load(path) as data:
+      return "metadata" in data.files and "keys" in data.files
+  except (OSError, ValueError, AttributeError, EOFError):   # not an .npz / a bare .npy
+    return False
+
+
+def find_map_files(paths: Sequence[str]) -> list:
+  """The map files named by `paths`: files, or folders searched recursively for map `.npz`s.
+
+  Other `.npz` files in a folder (GT voxel labels, the front-end cache) are skipped; a file
+  named directly must be a map.
+
+  Raises:
+    FileNotFoundError: a path does not exist.
+    ValueError: no paths, a named file that is not a map, or a folder without maps.
+  """
+  if isinstance(paths, (str, os.PathLike)):
+    paths = [paths]
+  if not paths:
+    raise ValueError("give at least one map file or folder")
+  found = []
+  for path in map(str, paths):
+    if not os.path.exists(path):
+      raise FileNotFoundError(f"no such file or folder: {path}")
+    if os.path.isdir(path):
+      inside = []
+      for root, dirs, files in os.walk(path):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        inside += [os.path.join(root, f) for f in sorted(files)
+                   if f.endswith(".npz") and not f.startswith(".")
+                   and is_map_file(os.path.join(root, f))]
+      if not inside:
+        raise ValueError(f"{path}: no jaxfusion map (.npz from `jaxfusion run` or `demo`) in "
+                         "this folder")
+      found += inside
+    elif is_map_file(path):
+      found.append(path)
+    else:
+      raise ValueError(f"{path} is not a jaxfusion map file (a .npz written by `jaxfusion run` "
+                       "or `demo`)")
+  unique, seen = [], set()
+  for path in found:
+    real = os.path.realpath(path)
+    if real not in seen:
+      seen.add(real)
+      unique.append(path)
+  return unique
+
+
+def gt_path_for(path: str, sequence: Optional[str]) -> Optional[str]:
+  """The GT voxel labels saved beside a map, if any.
+
+  `jaxfusion run` writes `<stem>_gt.npz` next to `<stem>.npz`; the demo writes one
+  `<sequence>_gt.npz` per sequence in its `maps/` folder.
+  """
+  stem = os.path.splitext(path)[0]
+  candidates = [stem + "_gt.npz"]
+  if sequence:
+    candidates.append(os.path.join(os.path.dirname(path), f"{sequence}_gt.npz"))
+  return next((c for c in candidates if os.path.isfile(c)), None)
+
+
+def load_gt(path: str) -> dict:
+  """GT voxel labels (`coords (M, 3) int32`, `labels (M,) int32`) as written by run/demo."""
+  try:
+    with np.load(path) as f:
+      coords, labels = np.asarray(f["coords"]), np.asarray(f["labels"])
+  except (OSError, ValueError, KeyError, AttributeError) as e:
+    raise ValueError(f"{path} is not a GT voxel-label file with 'coords' and 'labels' ({e})"
+                     ) from e
+  if coords.ndim != 2 or coords.shape[1] != 3 or labels.shape != (len(coords),):
+    raise ValueError(f"{path}: GT coords must be (M, 3) and labels (M,); got {coords.shape} "
+                     f"and {labels.shape}")
+  return {"coords": coords.astype(np.int32), "labels": labels.astype(np.int32)}
+
+
+def gt_labels_for(coords: np.ndarray, gt: dict) -> np.ndarray:
+  """`(N,) int32` GT label of each map voxel (−1 where the GT has no voxel there)."""
+  from jaxfusion import metrics
+  out = np.full(len(coords), -1, np.int32)
+  if len(coords) and len(gt["coords"]):
+    map_index, gt_index = metrics.match_voxels(np.asarray(coords, np.int32), gt["coords"])
+    out[map_index] = gt["labels"][gt_index]
+  return out
+
+
+def map_name(rule) -> str:
+  """The dropdown name of a map: the rule's paper name, β when it has one, mean aggregation."""
+  from jaxfusion import rules
+  name = rules.display_name(rule)
+  if "beta" in rule.hparams:
+    beta = np.asarray(rule.hparams["beta"], np.float64)
+    name += f" β={float(beta):g}" if beta.ndim == 0 else f" β={np.round(beta, 3).tolist()}"
+  if rule.aggregate != "sum":
+    name += f" ({rule.aggregate})"
+  return name
+
+
+def load_view_map(path: str) -> ViewMap:
+  """Loads one map file (and the GT saved beside it) for display.
+
+  Raises:
+    FileNotFoundError / ValueError: no file, or not a map file.
+  """
+  import jaxfusion as jf
+  from jaxfusion import io
+  state, rule, meta = io.load_map(path)
+  voxels = jf.read_map(state)
+  k = state.num_classes
+  names = tuple(meta.get("class_names") or (str(i) for i in range(k)))
+  labels = voxels["labels"]
+  confidence = None
+  if "confidence" in voxels:
+    confidence = voxels["confidence"][np.arange(len(labels)), labels].astype(np.float32)
+  extra = meta.get("extra") or {}
+  sequence = extra.get("sequence") or os.path.splitext(os.path.basename(path))[0]
+  gt_file = gt_path_for(path, extra.get("sequence"))
+  gt_labels = None if gt_file is None else gt_labels_for(voxels["coords"], load_gt(gt_file))
+  trajectory = io.load_trajectory(path)
+  return ViewMap(
+      path=path, name=map_name(rule), sequence=str(sequence), class_names=names,
+      voxel_size=float(state.voxel_size), centers=voxels["centers"], labels=labels,
+      hits=voxels["hits"], entropy=voxels["entropy"], confidence=confidence,
+      gt_labels=gt_labels,
+      poses=None if trajectory is None else trajectory["T_world_cam"],
+      camera=None if trajectory is None else trajectory["camera"])
+
+
+def check_same_classes(maps: Sequence[ViewMap]) -> None:
+  """Raises ValueError (one line) unless all maps have the same class list."""
+  first = maps[0]
+  for m in maps[1:]:
+    if m.class_names != first.class_names:
+      raise ValueError(f"maps have different class lists: {first.path} has "
+                       f"{list(first.class_names)}, {m.path} has {list(m.class_names)}")
+
+
+def load_maps(paths: Sequence[str]) -> list:
+  """Finds, loads and validates the maps named by `paths` (files or folders).
+
+  Maps of one sequence with the same name (e.g. the same rule in two folders) get the file
+  name added so that every map can be told apart.
+
+  Raises:
+    FileNotFoundError / ValueError: see `find_map_files`; maps of different class lists.
+  """
+  maps = [load_view_map(p) for p in find_map_files(paths)]
+  check_same_classes(maps)
+  counts = {}
+  for m in maps:
+    counts[(m.sequence, m.name)] = counts.get((m.sequence, m.name), 0) + 1
+  return [dataclasses.replace(m, name=f"{m.name} [{os.path.basename(m.path)}]")
+          if counts[(m.sequence, m.name)] > 1 else m for m in maps]
+
+
+def by_sequence(maps: Iterable[ViewMap]) -> dict:
+  """`{sequence: {map name: ViewMap}}`, in the order first seen."""
+  out = {}
+  for m in maps:
+    out.setdefault(m.sequence, {})[m.name] = m
+  return out
+
+
+def class_palette(class_names: Sequence[str]) -> np.ndarray:
+  """`(K, 3) uint8` class colours: the project's tables for its class lists, else tab20."""
+  from jaxfusion import datasets, io
+  names = tuple(class_names)
+  if names == tuple(datasets.CLASS_NAMES):
+    return np.asarray(datasets.CLASS_COLORS, np.uint8)
+  if names == tuple(datasets.SCANNET_CLASS_NAMES):
+    return np.asarray(datasets.SCANNET_COLORS, np.uint8)
+  return io.default_palette(len(names))
+
+
+def color_modes(m: ViewMap) -> tuple:
+  """The colour modes a map supports (confidence needs a Dirichlet rule, correct a GT map)."""
+  return tuple(mode for mode in COLOR_MODES
+               if (mode != "confidence" or m.confidence is not None)
+               and (mode != "correct" or m.gt_labels is not None))
+
+
+def scalar_field(m: ViewMap, mode: str) -> tuple:
+  """The per-voxel value a continuous colour mode shows, and its colour scale.
+
+  Entropy uses a fixed scale [0, log K] nats (comparable across maps); hits and ᾱ use a log
+  scale from the map's smallest to largest value.
+
+  Returns:
+    `(t, lo, hi, unit)`: `t (N,) float32` position on the colour scale in [0, 1], the values
+    at its ends, and their unit.
+  """
+  if mode == "entropy":
+    hi = float(np.log(max(m.num_classes, 2)))
+    return np.clip(m.entropy / hi, 0.0, 1.0).astype(np.float32), 0.0, hi, "nats"
+  if mode in ("hits", "confidence"):
+    values = m.hits if mode == "hits" else m.confidence
+    if values is None:
+      raise ValueError(f"{m.name}: this map has no Dirichlet confidence ᾱ (only the D and D+R "
+                       "rules keep one)")
+    v = np.maximum(np.asarray(values, np.float64), np.finfo(np.float32).tiny)
+    if len(v) == 0:
+      return np.zeros(0, np.float32), 0.0, 0.0, ""
+    lo, hi = float(v.min()), float(v.max())
+    span = np.log(hi) - np.log(lo)
+    t = (np.log(v) - np.log(lo)) / span if span > 0 else np.zeros_like(v)
+    return t.astype(np.float32), lo, hi, "pixels" if mode == "hits" else ""
+  raise ValueError(f"{mode!r} is not a continuous colour mode")
+
+
+def colormap(t: np.ndarray) -> np.ndarray:
+  """`(N,) float` in [0, 1] → `(N, 3) uint8` colours of the viewer's colour scale."""
+  import matplotlib
+  lut = (np.asarray(matplotlib.colormaps[COLORMAP](np.linspace(0, 1, 256)))[:, :3] * 255)
+  index = np.clip(np.round(np.asarray(t, np.float64) * 255), 0, 255).astype(np.int64)
+  return np.round(lut).astype(np.uint8)[index]
+
+
+def voxel_colors(m: ViewMap, mode: str, palette: np.ndarray) -> np.ndarray:
+  """`(N, 3) uint8` colour of every voxel of `m` in colour mode `mode`.
+
+  Args:
+    m: the map.
+    mode: one of `COLOR_MODES`.
+    palette: `(K, 3) uint8` class colours (mode "class").
+
+  Raises:
+    ValueError: unknown mode, a mode the map does not support, a palette of the wrong size.
+  """
+  if mode not in COLOR_MODES:
+    raise ValueError(f"colour mode must be one of {list(COLOR_MODES)}; got {mode!r}")
+  if mode == "class":
+    palette = np.asarray(palette, np.uint8)
+    if palette.ndim != 2 or palette.shape[1] != 3 or len(palette) < m.num_classes:
+      raise ValueError(f"palette must be (K ≥ {m.num_classes}, 3); got {palette.shape}")
+    return palette[m.labels]
+  if mode == "correct":
+    if m.gt_labels is None:
+      raise ValueError(f"{m.name}: no GT voxel labels are saved beside {m.path}")
+    out = np.empty((len(m), 3), np.uint8)
+    out[:] = UNSCORED_COLOR
+    scored = m.gt_labels >= 0
+    out[scored & (m.gt_labels == m.labels)] = RIGHT_COLOR
+    out[scored & (m.gt_labels != m.labels)] = WRONG_COLOR
+    return out
+  return colormap(scalar_field(m, mode)[0])
+
+
+def legend(m: ViewMap, mode: str, palette: np.ndarray) -> list:
+  """`[(text, (r, g, b)), ...]` explaining the colours of `voxel_colors(m, mode, palette)`."""
+  if mode == "class":
+    counts = np.bincount(m.labels, minlength=m.num_classes)
+    return [(f"{name} ({int(n)})", tuple(int(c) for c in palette[i]))
+            for i, (name, n) in enumerate(zip(m.class_names, counts))]
+  if mode == "correct":
+    if m.gt_labels is None:
+      raise ValueError(f"{m.name}: no GT voxel labels are saved beside {m.path}")
+    scored = m.gt_labels >= 0
+    right = int(np.sum(scored & (m.gt_labels == m.labels)))
+    wrong = int(np.sum(scored)) - right
+    acc = f", accuracy {100 * right / max(right + wrong, 1):.1f} %"
+    return [(f"right ({right}{acc})", RIGHT_COLOR), (f"wrong ({wrong})", WRONG_COLOR),
+            (f"not in GT ({len(m) - right - wrong})", UNSCORED_COLOR)]
+  _, lo, hi, unit = scalar_field(m, mode)
+  stops = np.linspace(0.0, 1.0, 5)
+  if mode == "entropy":
+    values = lo + stops * (hi - lo)
+  else:
+    values = np.exp(np.log(max(lo, 1e-38)) + stops * (np.log(max(hi, 1e-38)) -
+                                                      np.log(max(lo, 1e-38))))
+  colors = colormap(stops)
+  return [(f"{v:.3g} {unit}".rstrip(), tuple(int(x) for x in c))
+          for v, c in zip(values, colors)]
+
+
+def legend_html(entries: Sequence[tuple]) -> str:
+  """The legend as HTML: a colour swatch and the (escaped) text per entry."""
+  rows = []
+  for text, (r, g, b) in entries:
+    rows.append(
+        '<div style="display:flex;align-items:center;gap:6px;font-size:0.85em;">'
+        f'<span style="display:inline-block;width:0.9em;height:0.9em;border:1px solid #888;'
+        f'background:rgb({int(r)},{int(g)},{int(b)});"></span>{html.escape(str(text))}</div>')
+  return "".join(rows)
+
+
+def visible_mask(m: ViewMap, *, hidden_classes: Iterable[int] = (),
+                 max_height: Optional[float] = None, up_axis: int = 2) -> np.ndarray:
+  """`(N,) bool`: voxels whose predicted class is not hidden and whose centre is at most
+  `max_height` metres along the up axis (None: no height cut)."""
+  hidden = np.asarray(sorted(set(int(c) for c in hidden_classes)), np.int64)
+  if np.any((hidden < 0) | (hidden >= m.num_classes)):
+    raise ValueError(f"hidden classes must be in [0, {m.num_classes}); got {hidden.tolist()}")
+  if up_axis not in (0, 1, 2):
+    raise ValueError(f"up_axis must be 0, 1 or 2; got {up_axis}")
+  keep = ~np.isin(m.labels, hidden)
+  if max_height is not None:
+    keep &= m.centers[:, up_axis] <= max_height
+  return keep
+
+
+DRAW_CHOICES = ("auto", "cubes", "points")
+
+
+def representation(num_voxels: int, max_cubes: int, choice: str = "auto") -> str:
+  """How to draw `num_voxels` voxels: "cubes" or "points".
+
+  `choice` "auto" draws cubes up to `max_cubes` voxels and points beyond (a 10⁶-voxel map
+  stays smooth: a point costs one vertex, a cube 12 triangles); "cubes" / "points" force one.
+  """
+  if max_cubes < 0 or num_voxels < 0:
+    raise ValueError(f"counts must be ≥ 0; got num_voxels={num_voxels}, max_cubes={max_cubes}")
+  if choice not in DRAW_CHOICES:
+    raise ValueError(f"choice must be one of {list(DRAW_CHOICES)}; got {choice!r}")
+  if choice != "auto":
+    return choice
+  return "cubes" if num_voxels <= max_cubes else "points"
+
+
+def height_range(maps: Sequence[ViewMap], up_axis: int = 2) -> tuple:
+  """`(lo, hi)`: the lowest and highest voxel centre of all maps along the up axis."""
+  heights = [m.centers[:, up_axis] for m in maps if len(m)]
+  if not heights:
+    return 0.0, 1.0
+  all_h = np.concatenate(heights)
+  return float(all_h.min()), float(all_h.max())
+
+
+def initial_camera(maps: Sequence[ViewMap], up_axis: int = 2) -> tuple:
+  """`(position, look_at)` of a camera that sees all maps from above one corner."""
+  points = [m.centers for m in maps if len(m)]
+  if not points:
+    return np.array([3.0, -3.0, 3.0]), np.zeros(3)
+  pts = np.concatenate(points)
+  lo, hi = pts.min(axis=0), pts.max(axis=0)
+  center = (lo + hi) / 2
+  extent = max(float(np.linalg.norm(hi - lo)), 1.0)
+  direction = np.array([-0.55, -0.75, 0.0])
+  direction[up_axis] = 0.9
+  direction /= np.linalg.norm(direction)
+  return center + 0.95 * extent * direction, center
+
+
+def frustum_indices(num_poses: int, max_frustums: int) -> np.ndarray:
+  """Up to `max_frustums` evenly spread frame indices (first and last included)."""
+  if max_frustums < 1:
+    raise ValueError(f"max_frustums must be ≥ 1; got {max_frustums}")
+  if num_poses <= max_frustums:
+    return np.arange(num_poses)
+  return np.unique(np.round(np.linspace(0, num_poses - 1, max_frustums)).astype(np.int64))
+
+
+def frustum_shape(camera: Optional[dict]) -> tuple:
+  """`(vertical fov in radians, aspect W/H)` of the saved camera (60°, 4:3 when unknown)."""
+  if not camera:
+    return float(np.deg2rad(60.0)), 4.0 / 3.0
+  return (float(2 * np.arctan2(camera["height"] / 2, camera["fy"])),
+          float(camera["width"] / camera["height"]))

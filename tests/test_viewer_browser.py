@@ -1,0 +1,140 @@
+"""The viewer as a person sees it: the page opened in headless Chromium (software WebGL), with
+screenshots checked for the map's class colours and for a colour-mode switch.
+
+Needs the `chromium` executable; without it these tests skip, except where
+JAXFUSION_REQUIRE_BROWSER=1 (set by .ci/run, which installs chromium), where they fail.
+"""
+
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("viser")
+
+from jaxfusion import datasets   # noqa: E402
+from jaxfusion.datasets.classes import CHAIR, PLANT, TV   # noqa: E402
+from jaxfusion.viewer import browser   # noqa: E402
+from jaxfusion.viewer import scene_data as sd   # noqa: E402
+from jaxfusion.viewer import server   # noqa: E402
+from tests.test_viewer_server import save_floor_maps   # noqa: E402
+
+WIDTH, HEIGHT = 1280, 800
+COLORS = np.asarray(datasets.CLASS_COLORS, np.int64)
+SHOWN = (0, 2, 4, 6)         # background, chair, plant, TV: the stripes of the floor map
+ABSENT = (1, 3, 5)           # bottle, table, sofa
+ENOUGH = 40                  # pixels of a colour for it to count as on the picture
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+  if browser.find_chromium() is None:
+    reason = "chromium is not installed (apt-get install chromium; .ci/run installs it)"
+    if os.environ.get("JAXFUSION_REQUIRE_BROWSER") == "1":
+      pytest.fail(reason)
+    pytest.skip(reason)
+  maps = sd.load_maps(save_floor_maps(tmp_path_factory.mktemp("maps")))
+  viewer = server.MapViewer(maps, port=0)
+  try:
+    page = browser.HeadlessPage(viewer.url, width=WIDTH, height=HEIGHT)
+  except BaseException:
+    viewer.stop()
+    raise
+  yield viewer, page, tmp_path_factory.mktemp("shots")
+  page.close()
+  viewer.stop()
+
+
+def _scene(image):
+  """The part of the page where only the 3-D scene is drawn (no GUI panel, no axes gizmo)."""
+  return image[:HEIGHT - 120, 120:WIDTH - 400].reshape(-1, 3).astype(np.int64)
+
+
+def _count(pixels, color, tol=3):
+  return int(np.sum(np.max(np.abs(pixels - np.asarray(color)), axis=1) <= tol))
+
+
+def _show(viewer, **values):
+  for name, value in values.items():
+    viewer.controls[name].value = value
+
+
+def _wait(page, check, path, timeout=60):
+  """Screenshots until `check(pixels)` returns "" (else it returns what is wrong)."""
+  try:
+    image = page.wait_for(lambda im: not check(_scene(im)), timeout=timeout)
+  except TimeoutError:
+    image = page.screenshot()
+    browser_log = page.log_tail(500)
+  else:
+    browser_log = ""
+  import cv2
+  cv2.imwrite(str(path), image[:, :, ::-1])
+  problem = check(_scene(image))
+  assert not problem, f"{problem} (screenshot: {path}) {browser_log}"
+  return image
+
+
+def _class_colours_problem(pixels):
+  shown = {datasets.CLASS_NAMES[k]: _count(pixels, COLORS[k]) for k in SHOWN}
+  absent = {datasets.CLASS_NAMES[k]: _count(pixels, COLORS[k]) for k in ABSENT}
+  if min(shown.values()) < ENOUGH or max(absent.values()) > 5:
+    return f"class colours on the picture: map's {shown}, others {absent}"
+  return ""
+
+
+def test_page_shows_the_class_colours_of_the_map(session):
+  viewer, page, shots = session
+  _show(viewer, color="class", draw="points")   # points are drawn unlit: exact colours
+  _wait(page, _class_colours_problem, shots / "class_points.png")
+
+
+def test_switching_the_colour_mode_changes_the_picture(session):
+  viewer, page, shots = session
+  _show(viewer, color="class", draw="points")
+  before = _scene(_wait(page, _class_colours_problem, shots / "before.png"))
+  viewer.controls["color"].value = "entropy"
+  m = viewer.current_map()
+  expected = sd.voxel_colors(m, "entropy", None)
+  colours, counts = np.unique(expected, axis=0, return_counts=True)
+  main = colours[np.argmax(counts)]   # the entropy colour of most voxels
+
+  def problem(pixels):
+    red = _count(pixels, COLORS[CHAIR])
+    if _count(pixels, main) < ENOUGH or red > 5:
+      return (f"after switching to entropy: {_count(pixels, main)} pixels of its colour "
+              f"{main.tolist()}, {red} chair-red pixels")
+    return ""
+
+  after = _scene(_wait(page, problem, shots / "entropy.png"))
+  changed = np.any(before != after, axis=1).mean()
+  assert changed > 0.01, f"only {changed:.2%} of the scene's pixels changed"
+
+
+def _hue(rgb):
+  import colorsys
+  return np.array([colorsys.rgb_to_hsv(*(c / 255.0))[0] * 360 for c in rgb])
+
+
+def test_cubes_keep_the_class_hues(session):
+  viewer, page, shots = session
+  _show(viewer, color="class", draw="cubes")   # lit and tone-mapped: compare hues
+  hued = {CHAIR: 0.0, PLANT: 120.0, TV: 240.0}
+  np.testing.assert_allclose(_hue(COLORS[list(hued)]), list(hued.values()), atol=1.0)
+
+  def problem(pixels):
+    saturated = pixels[(pixels.max(1) - pixels.min(1)) >= 40]
+    if len(saturated) == 0:
+      return "no coloured cube on the picture"
+    hue = _hue(saturated)
+    ref = np.array(list(hued.values()))
+    nearest = np.argmin(np.abs((hue[:, None] - ref[None] + 180) % 360 - 180), axis=1)
+    counts = np.bincount(nearest, minlength=len(ref))
+    exact_red = _count(pixels, COLORS[CHAIR])
+    if counts.min() < ENOUGH or exact_red > counts[0] / 2:
+      return (f"cube hues near chair/plant/TV: {counts.tolist()}; exactly chair-red "
+              f"(unlit) pixels: {exact_red}")
+    return ""
+
+  _wait(page, problem, shots / "class_cubes.png")
+  assert viewer.last_drawn["kind"] == "cubes"
