@@ -212,17 +212,23 @@ def gather(tree):
   return jax.device_get(tree)
 
 
+def _on_host(x):
+  """`x` as a NumPy array, or unchanged when it is a tracer (a call under `grad`, `vmap`, …)."""
+  return x if isinstance(x, jax.core.Tracer) else np.asarray(x)
+
+
 def _pad_leading(tree, size: int, *, fill=None):
   """Pads the leading axis of every leaf to `size`, repeating the last item (or `fill`)."""
 
   def pad(x):
-    x = np.asarray(x)
+    x = _on_host(x)
     extra = size - x.shape[0]
     if extra == 0:
       return x
-    tail = np.repeat(x[-1:], extra, axis=0) if fill is None else np.full(
+    xp = jnp if isinstance(x, jax.core.Tracer) else np
+    tail = xp.repeat(x[-1:], extra, axis=0) if fill is None else xp.full(
         (extra,) + x.shape[1:], fill, x.dtype)
-    return np.concatenate([x, tail])
+    return xp.concatenate([x, tail])
 
   return jax.tree.map(pad, tree)
 
@@ -242,8 +248,7 @@ def _check_batch_frames(frames, mask, rule, *, batch_dims, num_classes):
     what = "(B, T, H, W)" if batch_dims == 2 else "(T, H, W)"
     raise ValueError(f"depth must have shape {what}; got {np.shape(frames.depth)} (use "
                      "stack_sequences to batch sequences of different lengths or sizes)")
-  flat = jax.tree.map(lambda x: np.reshape(np.asarray(x), (-1,) + np.shape(x)[batch_dims:]),
-                      frames)
+  flat = jax.tree.map(lambda x: _on_host(x).reshape((-1,) + np.shape(x)[batch_dims:]), frames)
   validation.check_frame(flat, num_classes=num_classes, requires_var=rule.requires_var,
                          rule_name=rule.name, batch_dims=1)
   if mask is None:
@@ -307,7 +312,7 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
   batch = mask.shape[0]
   camera, camera_axis = _cameras(camera, batch)
   size = _padded_size(batch, mesh)
-  frames = _pad_leading(jax.tree.map(np.asarray, frames), size)
+  frames = _pad_leading(jax.tree.map(_on_host, frames), size)
   mask = _pad_leading(mask, size, fill=False)
   if camera_axis:
     camera = _pad_leading(camera, size)
@@ -350,7 +355,7 @@ def fuse_sweep(frames: fusion.Frame, camera: CameraArg, rules: rules_base.Fusion
   camera, camera_axis = _cameras(camera, mask.shape[0] if batch_dims == 2 else None)
   size = _padded_size(num_rules, mesh)
   rules = _pad_leading(rules, size)
-  frames = jax.tree.map(np.asarray, frames)
+  frames = jax.tree.map(_on_host, frames)
   if mesh is not None:
     frames, mask, camera = put_sharded((frames, mask, camera), mesh, sharded=False)
     rules = put_sharded(rules, mesh, sharded=True)

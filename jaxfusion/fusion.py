@@ -301,6 +301,18 @@ def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
 
 
 _fuse_frame_jit = jax.jit(_fuse_frame, donate_argnums=0)
+_fuse_frame_keep = jax.jit(_fuse_frame)
+
+
+def under_transformation(*trees) -> bool:
+  """True when a leaf of `trees` is a tracer: the call is being traced by `jit`, `grad`, `vmap`…
+
+  The public entry points donate the map's buffers only when this is False. A transformation
+  may keep an input for later (reverse-mode AD saves it as a residual of the forward pass), so a
+  buffer it sees must never be donated; inside an outer `jit` donation is moot anyway (XLA plans
+  the buffers of the whole program).
+  """
+  return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
 
 
 def _check_inputs(state, frame, camera, rule, *, batch_dims):
@@ -317,6 +329,9 @@ def _check_inputs(state, frame, camera, rule, *, batch_dims):
 def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
                rule: rules_base.FusionRule) -> MapState:
   """Fuses one frame into the map (jitted; `state`'s buffers are donated and updated in place).
+
+  Under `jax.grad`, `jax.vmap` or any other transformation (any argument a tracer) nothing is
+  donated, so a plain Python loop of `fuse_frame` can be differentiated or batched as written.
 
   Every valid pixel is back-projected, pixels are grouped per voxel, and the rule's update is
   applied once per touched voxel with the frame's reduced observation (SPEC.md's Σ_j). Voxels
@@ -337,6 +352,8 @@ def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
     >>> state = jaxfusion.fuse_frame(state, jaxfusion.Frame(depth, T, mean, var), cam, rule)
   """
   _check_inputs(state, frame, camera, rule, batch_dims=0)
+  if under_transformation(state, frame, camera, rule):
+    return _fuse_frame_keep(state, frame, camera, rule)
   return _fuse_frame_jit(state, frame, camera, rule)
 
 
@@ -348,6 +365,7 @@ def _fuse_sequence(state, frames, camera, rule):
 
 
 _fuse_sequence_jit = jax.jit(_fuse_sequence, donate_argnums=0)
+_fuse_sequence_keep = jax.jit(_fuse_sequence)
 
 
 def fuse_sequence(state: MapState, frames: Frame, camera: camera_lib.Camera,
@@ -358,7 +376,7 @@ def fuse_sequence(state: MapState, frames: Frame, camera: camera_lib.Camera,
   give it all-zero depth: it then touches nothing.
 
   Args:
-    state: the map; donated.
+    state: the map; donated (except under a transformation, as for `fuse_frame`).
     frames: a Frame whose fields carry a leading time axis: `depth (T, H, W)`,
       `T_world_cam (T, 4, 4)`, `probs (T, H, W, K)`, `var (T, H, W, K)` or None.
     camera: intrinsics shared by all frames.
@@ -368,4 +386,6 @@ def fuse_sequence(state: MapState, frames: Frame, camera: camera_lib.Camera,
     The new MapState.
   """
   _check_inputs(state, frames, camera, rule, batch_dims=1)
+  if under_transformation(state, frames, camera, rule):
+    return _fuse_sequence_keep(state, frames, camera, rule)
   return _fuse_sequence_jit(state, frames, camera, rule)
