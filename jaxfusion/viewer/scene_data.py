@@ -417,7 +417,7 @@ def initial_camera(maps: Sequence[ViewMap], up_axis: int = 2) -> tuple:
   direction = np.array([-0.55, -0.75, 0.0])
   direction[up_axis] = 0.9
   direction /= np.linalg.norm(direction)
-  return center + 0.95 * extent * direction, center
+  return center + 0.8 * extent * direction, center
 
 
 def frustum_indices(num_poses: int, max_frustums: int) -> np.ndarray:

@@ -183,7 +183,7 @@ class MapViewer:
       for i in sd.frustum_indices(len(poses), self._max_frustums):
         scene.add_camera_frustum(
             f"/trajectory/frame_{int(i):04d}", fov=fov, aspect=aspect,
-            scale=max(0.03 * extent, 2 * m.voxel_size), color=(40, 40, 40),
+            scale=max(0.02 * extent, 2 * m.voxel_size), color=(40, 40, 40),
             wxyz=vtf.SO3.from_matrix(poses[i, :3, :3].astype(np.float64)).wxyz,
             position=poses[i, :3, 3].astype(np.float64))
       if len(poses) > 1:
