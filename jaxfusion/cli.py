@@ -258,6 +258,8 @@ def build_parser():
   for builder in ("add_sweep_parser", "add_tune_beta_parser"):
     if tune is not None and hasattr(tune, builder):
       getattr(tune, builder)(sub)
+  from jaxfusion import simulation
+  simulation.add_simulate_sweep_parser(sub)
   return p
 
 
