@@ -5,7 +5,12 @@ views of the training domain and of the shifted test domain, and reports pixel a
 mIoU (deterministic and MC-mean predictions) and how well the MC-dropout variance detects the
 network's errors: the AUROC of the per-pixel variance as a score for "this pixel is
 misclassified" (0.5 is chance, 1 is perfect), and the mean variance on wrong versus right
-pixels. `--timing` also measures the cost of MC sampling per frame for several M.
+pixels. Calibration, for the MC mean and for the dropout-off pass: expected calibration error
+(ECE, 15 bins of the max-probability), the mean max-probability on wrong and on right pixels,
+and the share of errors made with max-probability above 0.9; and the quartiles of the robust
+rules' Dirichlet weight α = −log(var of the predicted class) on right and on wrong pixels.
+mIoU is given pooled over all pixels (`*_miou`) and as the mean of per-frame mIoUs
+(`*_frame_miou`). `--timing` also measures the cost of MC sampling per frame for several M.
 
 Shape legend: N images, M Monte-Carlo samples, H×W pixels, K classes.
 """
@@ -91,6 +96,118 @@ def entropy(probs: np.ndarray) -> np.ndarray:
   """Shannon entropy (nats) over the last axis."""
   probs = np.asarray(probs, np.float64)
   return -np.sum(probs * np.log(np.clip(probs, 1e-12, 1.0)), axis=-1)
+
+
+def frame_miou(pred: np.ndarray, labels: np.ndarray, num_classes: int) -> float:
+  """Mean over frames of each frame's own mIoU (classes present in its truth or prediction).
+
+  Args:
+    pred: `(N, H, W)` int predictions.
+    labels: `(N, H, W)` int ground truth; values outside `[0, K)` are ignored.
+    num_classes: K.
+
+  Returns:
+    The average per-frame mIoU; NaN when no frame has a labelled pixel.
+  """
+  pred, labels = np.asarray(pred), np.asarray(labels)
+  if pred.shape != labels.shape or pred.ndim != 3:
+    raise ValueError(f"frame_miou expects (N, H, W) pred and labels; got {pred.shape}, "
+                     f"{labels.shape}")
+  values = [segmentation_metrics(confusion_matrix(p, y, num_classes))["miou"]
+            for p, y in zip(pred, labels)]
+  values = [v for v in values if np.isfinite(v)]
+  return float(np.mean(values)) if values else float("nan")
+
+
+def expected_calibration_error(probs: np.ndarray, labels: np.ndarray, *,
+                               num_bins: int = 15) -> float:
+  """ECE of the top-class confidence: `Σ_b (n_b / n) |accuracy_b − mean confidence_b|`.
+
+  Bins are `num_bins` equal-width intervals `((b−1)/B, b/B]` of the max-probability (a
+  confidence of exactly 0 goes to the first bin).
+
+  Args:
+    probs: `(..., K)` class probabilities.
+    labels: `(...)` int ground truth; values outside `[0, K)` are ignored.
+    num_bins: B.
+
+  Returns:
+    ECE in [0, 1]; NaN when no pixel is labelled.
+  """
+  if num_bins < 1:
+    raise ValueError(f"num_bins must be >= 1; got {num_bins}")
+  probs, labels = np.asarray(probs, np.float64), np.asarray(labels)
+  if probs.shape[:-1] != labels.shape:
+    raise ValueError(f"probs {probs.shape} do not match labels {labels.shape}")
+  valid = (labels >= 0) & (labels < probs.shape[-1])
+  probs, labels = probs[valid], labels[valid]
+  if labels.size == 0:
+    return float("nan")
+  confidence = probs.max(-1)
+  correct = (probs.argmax(-1) == labels).astype(np.float64)
+  bins = np.clip(np.ceil(confidence * num_bins).astype(np.int64) - 1, 0, num_bins - 1)
+  count = np.bincount(bins, minlength=num_bins)
+  gap = np.abs(np.bincount(bins, correct, minlength=num_bins)
+               - np.bincount(bins, confidence, minlength=num_bins))
+  return float(gap.sum() / labels.size)
+
+
+def calibration_report(probs: np.ndarray, labels: np.ndarray, *, num_bins: int = 15,
+                       high: float = 0.9) -> dict[str, float]:
+  """How (over)confident a prediction is where it is wrong.
+
+  Args:
+    probs: `(..., K)` class probabilities (MC mean or the dropout-off softmax).
+    labels: `(...)` int ground truth; values outside `[0, K)` are ignored.
+    num_bins: bins of the ECE.
+    high: the confidence above which an error counts as confident.
+
+  Returns:
+    `ece`, `mean_maxprob_wrong`, `mean_maxprob_right`, and `share_errors_above_high` (the
+    fraction of wrong pixels whose max-probability exceeds `high`); NaN where a set is empty.
+  """
+  probs, labels = np.asarray(probs, np.float64), np.asarray(labels)
+  valid = (labels >= 0) & (labels < probs.shape[-1])
+  confidence = probs.max(-1)[valid]
+  wrong = probs.argmax(-1)[valid] != labels[valid]
+  nan = float("nan")
+  return {
+      "ece": expected_calibration_error(probs, labels, num_bins=num_bins),
+      "mean_maxprob_wrong": float(confidence[wrong].mean()) if wrong.any() else nan,
+      "mean_maxprob_right": float(confidence[~wrong].mean()) if (~wrong).any() else nan,
+      "share_errors_above_high": float((confidence[wrong] > high).mean()) if wrong.any() else nan,
+  }
+
+
+def alpha_report(mean: np.ndarray, var: np.ndarray, labels: np.ndarray, *,
+                 eps: float = 1e-12) -> dict[str, float]:
+  """Quartiles of the Dirichlet weight of the predicted class on right and wrong pixels.
+
+  `α = −log(clip(var_ŷ, 0, 0.25) + ε)` with `ŷ = argmax mean`, exactly the concentration the
+  robust rules D and D+R give an observation (`jaxfusion.rules.robust.concentration`).
+
+  Args:
+    mean: `(..., K)` MC-mean probabilities.
+    var: `(..., K)` epistemic variances.
+    labels: `(...)` int ground truth; values outside `[0, K)` are ignored.
+    eps: ε of the robust rules.
+
+  Returns:
+    `alpha_{right,wrong}_{q25,median,q75}`, and `alpha_median_ratio` (right / wrong).
+  """
+  mean, var, labels = np.asarray(mean), np.asarray(var, np.float64), np.asarray(labels)
+  valid = (labels >= 0) & (labels < mean.shape[-1])
+  pred = mean.argmax(-1)[valid]
+  var_pred = np.take_along_axis(var[valid], pred[:, None], axis=-1)[:, 0]
+  alpha = -np.log(np.clip(var_pred, 0.0, 0.25) + eps)
+  wrong = pred != labels[valid]
+  out = {}
+  for name, subset in (("right", alpha[~wrong]), ("wrong", alpha[wrong])):
+    q = np.quantile(subset, [0.25, 0.5, 0.75]) if subset.size else [float("nan")] * 3
+    out.update({f"alpha_{name}_q25": float(q[0]), f"alpha_{name}_median": float(q[1]),
+                f"alpha_{name}_q75": float(q[2])})
+  out["alpha_median_ratio"] = out["alpha_right_median"] / out["alpha_wrong_median"]
+  return out
 
 
 _moments_batch = jax.jit(jax.vmap(sources.mc_moments))
@@ -184,13 +301,21 @@ def evaluate_arrays(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarra
   unc = uncertainty_report(preds["mc_mean"], preds["mc_var"], labels)
   valid = (labels >= 0) & (labels < num_classes)
   det_wrong = (preds["det_probs"].argmax(-1) != labels)[valid]
+  prefixed = lambda prefix, d: {f"{prefix}_{k}": v for k, v in d.items()}
   summary = {
       "num_images": int(images.shape[0]),
       "num_samples": num_samples,
       "det_pixel_accuracy": det["pixel_accuracy"], "det_miou": det["miou"],
       "mc_pixel_accuracy": mc["pixel_accuracy"], "mc_miou": mc["miou"],
+      "det_frame_miou": frame_miou(preds["det_probs"].argmax(-1), labels, num_classes),
+      "mc_frame_miou": frame_miou(preds["mc_mean"].argmax(-1), labels, num_classes),
       **unc,
       "det_auroc_entropy": auroc(entropy(preds["det_probs"][valid]), det_wrong),
+      # The same MC variance as a detector of the dropout-off pass's errors.
+      "det_auroc_var_sum": auroc(preds["mc_var"][valid].sum(-1), det_wrong),
+      **prefixed("mc", calibration_report(preds["mc_mean"], labels)),
+      **prefixed("det", calibration_report(preds["det_probs"], labels)),
+      **alpha_report(preds["mc_mean"], preds["mc_var"], labels),
       "chance_pixel_accuracy": float(1.0 / num_classes),
   }
   summary = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()}

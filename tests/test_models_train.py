@@ -71,8 +71,49 @@ def test_cross_entropy_ignores_unlabelled_pixels():
 
 def test_augment_keeps_shapes_ranges_and_label_set():
   images, labels = _toy_data(n=2)
-  x, y = jax.jit(train.augment)(jax.random.key(0), jnp.asarray(images, jnp.float32) / 255.0,
-                                jnp.asarray(labels))
+  augment = functools.partial(train.augment, **dict(train.augment_kwargs(
+      train.TrainConfig(blur_prob=1.0, zoom_max=1.5, noise_max=0.05))))
+  x, y = jax.jit(augment)(jax.random.key(0), jnp.asarray(images, jnp.float32) / 255.0,
+                          jnp.asarray(labels))
   assert x.shape == images.shape and y.shape == labels.shape and y.dtype == jnp.int32
   assert float(x.min()) >= 0.0 and float(x.max()) <= 1.0
   assert set(np.unique(np.asarray(y))) <= set(range(K))
+
+
+def test_gaussian_blur_is_identity_at_zero_and_preserves_constants_and_mass():
+  rng = np.random.default_rng(0)
+  image = jnp.asarray(rng.random((12, 10, 3)), jnp.float32)
+  np.testing.assert_array_equal(np.asarray(train.gaussian_blur(image, jnp.float32(0.0))),
+                                np.asarray(image))
+  flat = jnp.full((12, 10, 3), 0.3, jnp.float32)
+  np.testing.assert_allclose(np.asarray(train.gaussian_blur(flat, jnp.float32(1.2))), 0.3,
+                             rtol=1e-5)
+  # A centred impulse spreads into the separable normalised Gaussian (no mass reaches the
+  # reflected border at this size).
+  impulse = jnp.zeros((15, 15, 1)).at[7, 7, 0].set(1.0)
+  out = np.asarray(train.gaussian_blur(impulse, jnp.float32(1.0)))[..., 0]
+  taps = np.exp(-0.5 * np.arange(-3, 4) ** 2)
+  taps /= taps.sum()
+  expected = np.zeros((15, 15))
+  expected[4:11, 4:11] = np.outer(taps, taps)
+  np.testing.assert_allclose(out, expected, atol=1e-6)
+
+
+def test_random_zoom_keeps_labels_aligned_with_colour():
+  # Colour encodes the label, so after zooming each pixel's label must still match its colour
+  # wherever the bilinear colour is not a blend across a boundary.
+  images, labels = _toy_data(n=1, size=32)
+  image = jnp.asarray(images[0], jnp.float32) / 255.0
+  zi, zl = jax.jit(train.random_zoom, static_argnums=3)(jax.random.key(3), image,
+                                                         jnp.asarray(labels[0]), 1.5)
+  zi, zl = np.asarray(zi), np.asarray(zl)
+  assert zi.shape == image.shape and zl.shape == labels[0].shape
+  assert set(np.unique(zl)) <= set(np.unique(labels[0]))
+  red = (zi[..., 0] > 0.8) & (zi[..., 2] < 0.25)
+  blue = (zi[..., 2] > 0.8) & (zi[..., 0] < 0.25)
+  assert red.any() and blue.any()
+  assert np.all(zl[red] == 1) and np.all(zl[blue] == 2)
+  # max_zoom = 1 is the identity.
+  same_i, same_l = train.random_zoom(jax.random.key(0), image, jnp.asarray(labels[0]), 1.0)
+  np.testing.assert_allclose(np.asarray(same_i), np.asarray(image), atol=1e-6)
+  np.testing.assert_array_equal(np.asarray(same_l), labels[0])
