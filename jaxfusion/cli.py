@@ -251,6 +251,9 @@ def build_parser():
   from jaxfusion.viewer import command as view_command   # imports viser only when it runs
   view_command.add_parser(sub)
 
+  from jaxfusion import study
+  study.add_study_parser(sub)
+
   try:
     from jaxfusion import tune
   except ImportError:

@@ -23,7 +23,7 @@ from jaxfusion import metrics
 
 # The paper's setting: robust rules read the MC-dropout moments, baselines one dropout-off pass.
 ROBUST_RULES = ("robust_r", "robust_d", "robust_dr")
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,10 +102,14 @@ def cached_predictions(front_end: FrontEnd, sequence, config: ExperimentConfig, 
   """The front end's outputs for a sequence, computed once and cached (write then rename).
 
   A cache written for another model, sequence or M is never used: the file name carries the
-  model's digest and the metadata inside is checked.
+  model's digest, the layout seed, shift, resolution, frame count, M, the MC seed and a digest
+  of the rendered images (so any change of the sensing settings or of the renderer is a new
+  entry), and the metadata inside is checked.
   """
+  rgb_digest = hashlib.sha256(np.ascontiguousarray(sequence.rgb).tobytes()).hexdigest()[:12]
   seq_id = (f"{sequence.name}_s{config.scene_seed}_{config.height}x{config.width}"
-            f"_T{len(sequence)}_M{config.num_samples}_seed{config.seed}_shift{config.shift}")
+            f"_T{len(sequence)}_M{config.num_samples}_seed{config.seed}_shift{config.shift}"
+            f"_rgb{rgb_digest}")
   path = _cache_path(cache_dir, front_end.model_id, seq_id)
   meta = {"version": CACHE_VERSION, "model": front_end.model_id, "sequence": seq_id}
   if os.path.exists(path):

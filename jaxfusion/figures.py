@@ -150,3 +150,107 @@ def map_views(path: str, maps: dict, *, voxel_size: float, colors: np.ndarray,
     ax.set_aspect("equal")
     ax.axis("off")
   _save(fig, path)
+
+
+def bands_vs_shift(path: str, shifts, panels: dict, *, ylabel: str = "%",
+                   zero_line: bool = False, scale: float = 100.0) -> None:
+  """Curves over the domain shift with shaded interval bands, one panel per quantity.
+
+  Args:
+    path: PNG destination.
+    shifts: `(S,)` shift values (x axis).
+    panels: panel title -> {curve name -> `(estimate, low, high)`, each `(S,)`}.
+    ylabel: y-axis label.
+    zero_line: draw y = 0 (for differences).
+    scale: factor applied to all values (100: fractions shown in %).
+  """
+  plt = _pyplot()
+  shifts = np.asarray(shifts, np.float64)
+  fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 4.0), squeeze=False)
+  for ax, (title, curves) in zip(axes[0], panels.items()):
+    for i, (name, (est, low, high)) in enumerate(curves.items()):
+      color = f"C{i % 10}"
+      ax.plot(shifts, scale * np.asarray(est), "o-", color=color, label=name, lw=1.6, ms=4)
+      ax.fill_between(shifts, scale * np.asarray(low), scale * np.asarray(high), color=color,
+                      alpha=0.15, lw=0)
+    if zero_line:
+      ax.axhline(0.0, color="black", lw=0.8)
+    ax.set_title(title)
+    ax.set_xlabel("domain shift")
+    ax.set_ylabel(ylabel)
+    ax.set_xticks(shifts)
+    ax.grid(alpha=0.3)
+  axes[0][0].legend(fontsize=8)
+  _save(fig, path)
+
+
+def headroom_bars(path: str, shifts, shares, category_names: Sequence[str],
+                  recovered: dict) -> None:
+  """Where a better fusion rule can win: the voxel headroom per shift and what rules recover.
+
+  Args:
+    path: PNG destination.
+    shifts: `(S,)` shift values.
+    shares: `(S, 3)` fractions of the scored GT voxels per headroom category (rows sum to 1).
+    category_names: the 3 category labels (stacked bottom to top).
+    recovered: method -> `(S,)` fraction of the middle category ("outvoted right") voxels the
+      method labels correctly.
+  """
+  plt = _pyplot()
+  shifts = np.asarray(shifts, np.float64)
+  shares = np.asarray(shares, np.float64)
+  labels = [f"{s:g}" for s in shifts]
+  x = np.arange(len(shifts))
+  fig, axes = plt.subplots(1, 2, figsize=(12, 4.0))
+  bottom = np.zeros(len(shifts))
+  for j, (name, color) in enumerate(zip(category_names, ("tab:green", "tab:orange", "tab:red"))):
+    axes[0].bar(x, 100 * shares[:, j], 0.6, bottom=100 * bottom, label=name, color=color)
+    bottom = bottom + shares[:, j]
+  axes[0].set_xticks(x, labels)
+  axes[0].set_xlabel("domain shift")
+  axes[0].set_ylabel("% of scored GT voxels")
+  axes[0].set_title("voxel headroom")
+  axes[0].legend(fontsize=8)
+  width = 0.8 / max(1, len(recovered))
+  for i, (name, values) in enumerate(recovered.items()):
+    axes[1].bar(x + (i - (len(recovered) - 1) / 2) * width, 100 * np.nan_to_num(values), width,
+                label=name)
+  axes[1].set_xticks(x, labels)
+  axes[1].set_xlabel("domain shift")
+  axes[1].set_ylabel("% recovered")
+  axes[1].set_title(f"{category_names[1]} voxels a rule labels correctly")
+  axes[1].legend(fontsize=8, ncol=2)
+  _save(fig, path)
+
+
+def alpha_histograms(path: str, shifts, bin_edges, right, wrong) -> None:
+  """Distributions of the Dirichlet weight α of right and wrong pixel observations per shift.
+
+  Args:
+    path: PNG destination.
+    shifts: `(S,)` shift values, one panel each.
+    bin_edges: `(nb + 1,)` α bin edges.
+    right: `(S, nb)` counts of right pixel observations per bin.
+    wrong: `(S, nb)` counts of wrong pixel observations per bin.
+  """
+  plt = _pyplot()
+  edges = np.asarray(bin_edges, np.float64)
+  right = np.asarray(right, np.float64)
+  wrong = np.asarray(wrong, np.float64)
+  occupied = np.nonzero((right + wrong).sum(0))[0]
+  lo, hi = (edges[occupied[0]], edges[occupied[-1] + 1]) if occupied.size else (edges[0],
+                                                                                edges[-1])
+  fig, axes = plt.subplots(1, len(shifts), figsize=(3.6 * len(shifts), 3.2), squeeze=False,
+                           sharey=True)
+  for ax, s, r, w in zip(axes[0], shifts, right, wrong):
+    for counts, name, color in ((r, "right", "tab:green"), (w, "wrong", "tab:red")):
+      total = counts.sum()
+      density = counts / (total * np.diff(edges)) if total else counts
+      ax.stairs(density, edges, label=f"{name} ({int(total)} px)", color=color, fill=True,
+                alpha=0.35)
+    ax.set_xlim(lo, hi)
+    ax.set_title(f"shift {s:g}")
+    ax.set_xlabel("α = −log var of the predicted class")
+    ax.legend(fontsize=7)
+  axes[0][0].set_ylabel("density")
+  _save(fig, path)

@@ -1,0 +1,702 @@
+"""The fusion experiment as a study with statistics: `jaxfusion study`.
+
+Grid: the six rules × domain shifts × layout seeds × environments × trajectories. Each *unit*
+(layout seed, environment, trajectory) is rendered at every shift with `make_sequence`'s
+default sensing; the front end runs once per rendered sequence (MC dropout with M samples for
+the robust rules, one dropout-off pass for the baselines, as in `jaxfusion demo`) and is cached
+on disk (`experiments.cached_predictions`, keyed by the model's digest, shift, layout seed,
+resolution, frames, M and a digest of the rendered images). Then every sequence is fused with
+all rules and with the oracle, and scored against GT voxel labels as the demo does.
+
+Definitions (per shift; a voxel's GT label y is the majority of its GT pixel labels):
+
+* **Pixel observation**: a pixel with valid depth whose voxel (the engine's key) is a GT voxel;
+  it *votes* for the argmax of the front end's MC-mean probabilities (what the robust rules
+  read). It is **right** when that class equals y of its voxel, **wrong** otherwise.
+* **Scored voxels**: GT voxels with at least one pixel observation (the voxels every map has).
+* **Voxel headroom**: with n_k the votes for class k over the whole sequence, a scored voxel is
+  *mostly right* when n_y > max_{k≠y} n_k (a plurality vote is right), *outvoted right* when
+  0 < n_y ≤ max_{k≠y} n_k (some observations are right but are outvoted or tied: only here can
+  a better weighting of the observations win), and *never right* when n_y = 0.
+* **Recovered** (per rule): the share of outvoted-right voxels whose map label is y. The
+  accuracies on mostly-right and never-right voxels are reported too.
+* **Oracle**: an error detector that knows which observations are wrong: the depth of every
+  wrong pixel (and of pixels outside GT voxels) is set to invalid and the MC means of the right
+  pixels are fused with the Bayesian rule; voxels that keep no observation (never right) take
+  the Bayesian map's label. Every observation fused for a voxel has argmax y and the Bayesian
+  posterior is the normalised sum of their log-probabilities, so the oracle labels every voxel
+  with a right observation correctly: its confusion dominates the Bayesian map voxel by voxel,
+  and it bounds every rule that cannot win a voxel no observation votes right for.
+* **α** of a pixel: `−log(clip(var_c, 0, 0.25) + ε)` of its predicted class c (the D rules'
+  weight, ε = 1e-12), histogrammed for right and wrong pixel observations; AUROC is
+  P(α_right > α_wrong) + ½ P(same 0.1-nat bin), from the histograms.
+* **Intervals**: percentile bootstrap over sequences (`stats`): sequences are resampled with
+  replacement, confusion matrices (and voxel / pixel counts) are summed over the resample and
+  mIoU, accuracy or the share is computed from the sums. One set of resamples is shared by all
+  methods and shifts, so a paired difference (e.g. D+R − Bayes) is evaluated on the same
+  resamples for both methods.
+
+Outputs under OUT: `study.md`, `study.csv` (long format), `study.json` (summaries, per-sequence
+raw counts, config, timing), `miou_vs_shift.png`, `differences_vs_shift.png`, `headroom.png`,
+`alpha_hist.png`.
+
+Shape legend: S sequences, T frames, H×W pixels, N = H·W, K classes, G GT voxels, P pixel
+observations, B bootstrap resamples.
+"""
+
+import argparse
+import csv
+import dataclasses
+import io as _io
+import json
+import os
+import time
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+import jaxfusion as jf
+from jaxfusion import camera as camera_lib
+from jaxfusion import experiments
+from jaxfusion import figures
+from jaxfusion import io
+from jaxfusion import metrics
+from jaxfusion import stats
+from jaxfusion.rules.robust import DEFAULT_EPS
+
+HEADROOM = ("mostly right", "outvoted right", "never right")
+ORACLE = "oracle"
+# Paired comparisons (A, B) reported as A − B, in this order (those whose rules are run).
+COMPARISONS = (("robust_dr", "bayes"), ("robust_dr", "sum_probs"), ("robust_r", "bayes"),
+               ("robust_d", "bayes"), (ORACLE, "bayes"))
+# α bins: 0.1 nat from 0 to 28 (α ≤ −log 1e-12 ≈ 27.6).
+ALPHA_EDGES = np.linspace(0.0, 28.0, 281)
+# The demo's layout seed (ExperimentConfig.scene_seed); the study's default seeds avoid it.
+DEMO_SEED = experiments.ExperimentConfig.scene_seed
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyConfig:
+  """What the study runs. The defaults are the full study; `quick()` a ≤ 3-minute version.
+
+  Attributes:
+    seeds: layout seeds (the demo uses 0; the study's default seeds are others).
+    shifts: domain shifts in [0, 1].
+    envs: environments.
+    trajectories: trajectory indices.
+    rules: rule names (`jf.rules.PAPER_RULES` keys); must include "bayes" (the oracle's
+      fallback and the reference of the comparisons).
+    num_frames: frames per sequence.
+    height: image rows.
+    width: image columns.
+    num_samples: MC-dropout samples M (≥ 2: the robust rules need a variance).
+    beta: β of the R and D+R rules.
+    aggregate: pixel aggregation of every rule ("sum" or "mean").
+    voxel_size: voxel edge in metres.
+    capacity: map capacity (power of two).
+    seed: MC-dropout seed and bootstrap seed.
+    num_resamples: bootstrap resamples B.
+    confidence: interval coverage.
+  """
+  seeds: tuple = (1, 2, 3)
+  shifts: tuple = (0.0, 0.25, 0.5, 0.75, 1.0)
+  envs: tuple = ("office", "house")
+  trajectories: tuple = (0, 1, 2)
+  rules: tuple = tuple(jf.rules.PAPER_RULES)
+  num_frames: int = 30
+  height: int = 96
+  width: int = 128
+  num_samples: int = 16
+  beta: float = 0.3
+  aggregate: str = "sum"
+  voxel_size: float = 0.1
+  capacity: int = 2**17
+  seed: int = 0
+  num_resamples: int = stats.DEFAULT_RESAMPLES
+  confidence: float = stats.DEFAULT_CONFIDENCE
+
+  @classmethod
+  def quick(cls, **overrides) -> "StudyConfig":
+    """One seed, both environments, one trajectory, three shifts, short small sequences."""
+    base = dict(seeds=(1,), trajectories=(0,), shifts=(0.0, 0.5, 1.0), num_frames=12,
+                height=60, width=80, num_samples=8)
+    base.update(overrides)
+    return cls(**base)
+
+  def validate(self) -> "StudyConfig":
+    """Raises ValueError for an unusable configuration; returns self."""
+    if not self.seeds or any(int(s) != s or s < 0 for s in self.seeds):
+      raise ValueError(f"seeds must be non-negative integers; got {self.seeds}")
+    if len(set(self.seeds)) != len(self.seeds):
+      raise ValueError(f"seeds must be distinct; got {self.seeds}")
+    if not self.shifts or any(not 0.0 <= float(s) <= 1.0 for s in self.shifts):
+      raise ValueError(f"shifts must lie in [0, 1]; got {self.shifts}")
+    if len(set(self.shifts)) != len(self.shifts):
+      raise ValueError(f"shifts must be distinct; got {self.shifts}")
+    if not self.envs or any(e not in ("office", "house") for e in self.envs):
+      raise ValueError(f"envs must be office and/or house; got {self.envs}")
+    if not self.trajectories or any(t not in (0, 1, 2) for t in self.trajectories):
+      raise ValueError(f"trajectories must be among 0, 1, 2; got {self.trajectories}")
+    unknown = [r for r in self.rules if r not in jf.rules.PAPER_RULES]
+    if unknown or "bayes" not in self.rules:
+      raise ValueError(f"rules must be names among {list(jf.rules.PAPER_RULES)} and include "
+                       f"'bayes'; got {self.rules}")
+    for name, low in (("num_frames", 1), ("height", 2), ("width", 2), ("num_samples", 2),
+                      ("num_resamples", 1)):
+      if int(getattr(self, name)) < low:
+        raise ValueError(f"{name} must be at least {low}; got {getattr(self, name)}")
+    if not 0.0 <= self.beta <= 1.0:
+      raise ValueError(f"beta must lie in [0, 1]; got {self.beta}")
+    if self.aggregate not in ("sum", "mean"):
+      raise ValueError(f"aggregate must be 'sum' or 'mean'; got {self.aggregate!r}")
+    if not 0.0 < self.confidence < 1.0:
+      raise ValueError(f"confidence must lie in (0, 1); got {self.confidence}")
+    return self
+
+  @property
+  def units(self) -> list:
+    """The resampled units: `[(seed, env, trajectory)]`."""
+    return [(s, e, t) for s in self.seeds for e in self.envs for t in self.trajectories]
+
+  def experiment_config(self, scene_seed: int, shift: float) -> experiments.ExperimentConfig:
+    """The demo's configuration for one sequence of the grid (rules, cache key, fusion)."""
+    return experiments.ExperimentConfig(
+        rules=tuple(self.rules), num_frames=self.num_frames, height=self.height,
+        width=self.width, num_samples=self.num_samples, shift=float(shift),
+        scene_seed=int(scene_seed), seed=self.seed, voxel_size=self.voxel_size,
+        capacity=self.capacity, beta=self.beta, aggregate=self.aggregate)
+
+
+# --- per-sequence analysis ---------------------------------------------------------------------
+@jax.jit
+def _frame_keys(depth, T_world_cam, camera, voxel_size):
+  keys, in_range = jax.vmap(camera_lib.depth_to_voxel_keys, in_axes=(0, 0, None, None))(
+      depth, T_world_cam, camera, voxel_size)
+  d = depth.reshape(depth.shape[0], -1)
+  return keys, in_range & jnp.isfinite(d) & (d > 0)
+
+
+def _rows(coords) -> np.ndarray:
+  coords = np.ascontiguousarray(np.asarray(coords, np.int32).reshape(-1, 3))
+  return coords.view(np.dtype((np.void, 12))).reshape(-1)
+
+
+def pixel_observations(depth, T_world_cam, camera, probs, gt_coords, *,
+                       voxel_size: float) -> dict:
+  """Which GT voxel each pixel observes and which class it votes for.
+
+  Args:
+    depth: `(T, H, W)` float depth (invalid: 0, negative or non-finite).
+    T_world_cam: `(T, 4, 4)` camera-to-world poses.
+    camera: intrinsics.
+    probs: `(T, H, W, K)` probabilities whose argmax is the vote (pixels with non-finite
+      probabilities are not observations, as in the engine).
+    gt_coords: `(G, 3)` int GT voxel coordinates (unique).
+    voxel_size: voxel edge in metres (the maps' and the GT's).
+
+  Returns:
+    dict with `gt_index (T, N) int64` (the pixel's GT voxel, −1 for no observation) and
+    `pred (T, N) int64` (the argmax class).
+  """
+  depth = np.asarray(depth, np.float32)
+  probs = np.asarray(probs)
+  if depth.ndim != 3 or probs.shape[:3] != depth.shape:
+    raise ValueError(f"depth must be (T, H, W) and probs (T, H, W, K); got {depth.shape} and "
+                     f"{probs.shape}")
+  t = depth.shape[0]
+  keys, valid = _frame_keys(jnp.asarray(depth), jnp.asarray(T_world_cam, jnp.float32), camera,
+                            jnp.float32(voxel_size))
+  keys, valid = np.asarray(keys).reshape(-1, 3), np.array(valid).reshape(-1)
+  flat_probs = probs.reshape(-1, probs.shape[-1])
+  valid &= np.all(np.isfinite(flat_probs), axis=-1)
+  gt_rows = _rows(gt_coords)
+  pix_rows = _rows(keys[valid])
+  _, inverse = np.unique(np.concatenate([gt_rows, pix_rows]), return_inverse=True)
+  inverse = inverse.reshape(-1)
+  lookup = np.full(int(inverse.max()) + 1 if inverse.size else 0, -1, np.int64)
+  lookup[inverse[:len(gt_rows)]] = np.arange(len(gt_rows))
+  gt_index = np.full(valid.shape, -1, np.int64)
+  gt_index[valid] = lookup[inverse[len(gt_rows):]]
+  pred = np.argmax(flat_probs, axis=-1).astype(np.int64)
+  return {"gt_index": gt_index.reshape(t, -1), "pred": pred.reshape(t, -1)}
+
+
+def classify_voxels(gt_labels, gt_index, pred, num_classes: int) -> np.ndarray:
+  """The headroom category of every GT voxel from its pixel votes (see the module docstring).
+
+  Args:
+    gt_labels: `(G,)` int GT label y per voxel.
+    gt_index: `(P,)` int GT voxel of each pixel observation (entries < 0 are ignored).
+    pred: `(P,)` int class each observation votes for.
+    num_classes: K.
+
+  Returns:
+    `(G,) int8`: 0 mostly right, 1 outvoted right, 2 never right, −1 not observed.
+  """
+  y = np.asarray(gt_labels, np.int64).reshape(-1)
+  gt_index = np.asarray(gt_index, np.int64).reshape(-1)
+  pred = np.asarray(pred, np.int64).reshape(-1)
+  if gt_index.shape != pred.shape:
+    raise ValueError(f"gt_index and pred must have the same length; got {gt_index.shape} and "
+                     f"{pred.shape}")
+  g = len(y)
+  keep = gt_index >= 0
+  votes = np.bincount(gt_index[keep] * num_classes + pred[keep],
+                      minlength=g * num_classes).reshape(g, num_classes)
+  rows = np.arange(g)
+  right = votes[rows, y]
+  others = votes.copy()
+  others[rows, y] = -1
+  best_other = others.max(1) if num_classes > 1 else np.zeros(g, np.int64)
+  category = np.where(right > best_other, 0, 1)
+  category = np.where(right == 0, 2, category)
+  return np.where(votes.sum(1) == 0, -1, category).astype(np.int8)
+
+
+def alpha_of_prediction(var, pred) -> np.ndarray:
+  """`α = −log(clip(var_c, 0, 0.25) + ε)` of the predicted class c (the D rules' weight).
+
+  Args:
+    var: `(..., K)` per-class MC variance.
+    pred: `(...)` int predicted class.
+
+  Returns:
+    `(...) float64` α.
+  """
+  var = np.asarray(var)
+  v = np.take_along_axis(var, np.asarray(pred)[..., None], axis=-1)[..., 0]
+  return -np.log(np.clip(v.astype(np.float64), 0.0, 0.25) + DEFAULT_EPS)
+
+
+def _fuse(depth, T_world_cam, camera, probs, var, rule, config):
+  state = jf.init_map(capacity=config.capacity, num_classes=probs.shape[-1],
+                      voxel_size=config.voxel_size, rule=rule)
+  for t in range(len(depth)):
+    state = jf.fuse_frame(state, jf.Frame(depth[t], T_world_cam[t], probs[t],
+                                          None if var is None else var[t]), camera, rule)
+  return jf.read_map(state)
+
+
+def _labels_at(voxels, gt_coords) -> np.ndarray:
+  """`(G,)` map label of each GT voxel, −1 where the map does not hold it."""
+  out = np.full(len(gt_coords), -1, np.int64)
+  map_index, gt_index = metrics.match_voxels(voxels["coords"], gt_coords)
+  out[gt_index] = np.asarray(voxels["labels"])[map_index]
+  return out
+
+
+def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig) -> dict:
+  """Fuses one sequence with every rule and the oracle and counts what the study needs.
+
+  Args:
+    sequence: an `RGBDSequence` (depth, poses, camera) with `labels`.
+    predictions: `det`, `mean`, `var`, each `(T, H, W, K)` (see `experiments.FrontEnd`).
+    gt: GT voxel labels (`coords (G, 3)`, `labels (G,)`), e.g. `datasets.gt_voxel_labels`.
+    config: the study's configuration.
+
+  Returns:
+    dict: `confusion` (method → `(K, K)` int64, the rules and `ORACLE`), `correct` (method →
+    `(3,)` correctly labelled voxels per headroom category), `headroom` (`(3,)` scored voxels
+    per category), `alpha_hist` (`(2, nb)` pixel observations per α bin, right then wrong),
+    `pixels` (right and wrong observation counts), `matched`/`map_only`/`gt_only` (Bayesian
+    map vs GT).
+  """
+  num_classes = predictions["mean"].shape[-1]
+  gt_coords = np.asarray(gt["coords"])
+  gt_labels = np.asarray(gt["labels"], np.int64)
+  obs = pixel_observations(sequence.depth, sequence.T_world_cam, sequence.camera,
+                           predictions["mean"], gt_coords, voxel_size=config.voxel_size)
+  observed = obs["gt_index"] >= 0
+  right = observed & (obs["pred"] == gt_labels[np.maximum(obs["gt_index"], 0)])
+  category = classify_voxels(gt_labels, obs["gt_index"], obs["pred"], num_classes)
+  headroom = np.array([(category == c).sum() for c in range(3)], np.int64)
+  alpha = alpha_of_prediction(predictions["var"].reshape(right.shape + (num_classes,)),
+                              obs["pred"])
+  alpha_hist = np.stack([np.histogram(alpha[right], ALPHA_EDGES)[0],
+                         np.histogram(alpha[observed & ~right], ALPHA_EDGES)[0]]).astype(np.int64)
+
+  confusion, correct, labels_at = {}, {}, {}
+  result_bayes = None
+  for name in config.rules:
+    rule = config.experiment_config(0, 0.0).make_rule(name)
+    robust = name in experiments.ROBUST_RULES
+    voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera,
+                   predictions["mean"] if robust else predictions["det"],
+                   predictions["var"] if robust else None, rule, config)
+    ev = metrics.evaluate_map(voxels, gt, num_classes)
+    confusion[name] = ev["confusion"]
+    labels_at[name] = _labels_at(voxels, gt_coords)
+    if name == "bayes":
+      result_bayes = ev
+  # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
+  bayes = config.experiment_config(0, 0.0).make_rule("bayes")
+  masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0).astype(np.float32)
+  oracle_voxels = _fuse(masked, sequence.T_world_cam, sequence.camera, predictions["mean"], None,
+                        bayes, config)
+  oracle_at = _labels_at(oracle_voxels, gt_coords)
+  in_bayes = labels_at["bayes"] >= 0
+  labels_at[ORACLE] = np.where(oracle_at >= 0, oracle_at, labels_at["bayes"])
+  confusion[ORACLE] = metrics.confusion_matrix(gt_labels[in_bayes],
+                                               labels_at[ORACLE][in_bayes], num_classes)
+  for name, labels in labels_at.items():
+    hit = labels == gt_labels
+    correct[name] = np.array([(hit & (category == c)).sum() for c in range(3)], np.int64)
+  return {"confusion": confusion, "correct": correct, "headroom": headroom,
+          "alpha_hist": alpha_hist,
+          "pixels": {"right": int(right.sum()), "wrong": int((observed & ~right).sum())},
+          "matched": result_bayes["matched"], "map_only": result_bayes["map_only"],
+          "gt_only": result_bayes["gt_only"]}
+
+
+# --- statistics over sequences -----------------------------------------------------------------
+def histogram_auroc(sums) -> np.ndarray:
+  """AUROC of α as a right-vs-wrong score from histograms: P(α_r > α_w) + ½ P(same bin).
+
+  Args:
+    sums: `(..., 2, nb)` counts per bin, right then wrong.
+
+  Returns:
+    `(...)` AUROC (NaN without right or without wrong pixels).
+  """
+  sums = np.asarray(sums, np.float64)
+  r, w = sums[..., 0, :], sums[..., 1, :]
+  below = np.cumsum(w, axis=-1) - w
+  num = (r * (below + 0.5 * w)).sum(-1)
+  den = r.sum(-1) * w.sum(-1)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+
+
+def histogram_median(counts, edges=ALPHA_EDGES) -> float:
+  """Median of a histogram (linear within the bin where the cumulative share crosses ½)."""
+  counts = np.asarray(counts, np.float64)
+  total = counts.sum()
+  if total <= 0:
+    return float("nan")
+  cum = np.cumsum(counts)
+  i = int(np.searchsorted(cum, total / 2.0))
+  before = cum[i] - counts[i]
+  frac = (total / 2.0 - before) / counts[i] if counts[i] > 0 else 0.0
+  return float(edges[i] + frac * (edges[i + 1] - edges[i]))
+
+
+def _iv(interval: stats.Interval) -> dict:
+  return {"estimate": interval.estimate, "low": interval.low, "high": interval.high}
+
+
+def summarize(per_sequence: list, config: StudyConfig) -> dict:
+  """Bootstrap summaries per shift from the per-sequence results.
+
+  Args:
+    per_sequence: `analyze_sequence` outputs with `shift` and `unit` keys added, covering
+      every `(unit, shift)` of the config.
+    config: the study's configuration.
+
+  Returns:
+    dict shift (str) → `methods` (method → `miou`, `accuracy` intervals), `differences`
+    ("A − B" → `miou`, `accuracy` intervals), `headroom` (category → share interval),
+    `recovered` (method → interval of the share of outvoted-right voxels labelled right, and
+    `accuracy_by_category`), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
+    `right_share` interval of right pixel observations), `num_sequences`.
+  """
+  units = config.units
+  counts = stats.resample_counts(len(units), config.num_resamples, seed=config.seed)
+  kw = dict(counts=counts, confidence=config.confidence)
+  methods = list(config.rules) + [ORACLE]
+  out = {}
+  for shift in config.shifts:
+    rows = {r["unit"]: r for r in per_sequence if r["shift"] == float(shift)}
+    missing = [u for u in units if tuple(u) not in rows]
+    if missing:
+      raise ValueError(f"no result for shift {shift} and units {missing}")
+    seq = [rows[tuple(u)] for u in units]
+    cms = {m: np.stack([r["confusion"][m] for r in seq]) for m in methods}
+    res = {"num_sequences": len(seq), "methods": {}, "differences": {}, "headroom": {},
+           "recovered": {}}
+    for m in methods:
+      res["methods"][display(m)] = {"miou": _iv(stats.bootstrap(cms[m], stats.miou, **kw)),
+                                    "accuracy": _iv(stats.bootstrap(cms[m], stats.accuracy,
+                                                                    **kw))}
+    for a, b in COMPARISONS:
+      if a in cms and b in cms:
+        res["differences"][f"{display(a)} − {display(b)}"] = {
+            "miou": _iv(stats.paired_difference(cms[a], cms[b], stats.miou, **kw)),
+            "accuracy": _iv(stats.paired_difference(cms[a], cms[b], stats.accuracy, **kw))}
+    head = np.stack([r["headroom"] for r in seq])                       # (S, 3)
+    total = head.sum(1)
+    for c, cname in enumerate(HEADROOM):
+      res["headroom"][cname] = _iv(stats.bootstrap(np.stack([head[:, c], total], -1),
+                                                   stats.ratio, **kw))
+    for m in methods:
+      corr = np.stack([r["correct"][m] for r in seq])                   # (S, 3)
+      res["recovered"][display(m)] = {
+          "share": _iv(stats.bootstrap(np.stack([corr[:, 1], head[:, 1]], -1), stats.ratio,
+                                       **kw)),
+          "accuracy_by_category": {cname: float(stats.ratio([corr[:, c].sum(),
+                                                             head[:, c].sum()]))
+                                   for c, cname in enumerate(HEADROOM)}}
+    hist = np.stack([r["alpha_hist"] for r in seq])                      # (S, 2, nb)
+    pix = np.array([[r["pixels"]["right"], r["pixels"]["right"] + r["pixels"]["wrong"]]
+                    for r in seq])
+    res["alpha"] = {"median_right": histogram_median(hist[:, 0].sum(0)),
+                    "median_wrong": histogram_median(hist[:, 1].sum(0)),
+                    "auroc": _iv(stats.bootstrap(hist, histogram_auroc, **kw)),
+                    "right_share": _iv(stats.bootstrap(pix, stats.ratio, **kw))}
+    out[f"{float(shift):g}"] = res
+  return out
+
+
+def display(method: str) -> str:
+  """Table name of a rule name or `ORACLE`."""
+  return "Oracle" if method == ORACLE else jf.rules.PAPER_RULES[method][0]
+
+
+# --- tables and figures ------------------------------------------------------------------------
+def _cell(iv: dict, scale: float = 100.0, signed: bool = False) -> str:
+  if iv["estimate"] is None or not np.isfinite(iv["estimate"]):
+    return "–"
+  fmt = "{:+.1f}" if signed else "{:.1f}"
+  return (fmt.format(scale * iv["estimate"]) +
+          f" [{scale * iv['low']:.1f}, {scale * iv['high']:.1f}]")
+
+
+def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
+  """The study's Markdown: mIoU, accuracy, paired differences, headroom, front-end α."""
+  shifts = list(summary)
+  first = summary[shifts[0]]
+  conf = f"{100 * config.confidence:g} %"
+  head = "| Method | " + " | ".join(f"shift {s}" for s in shifts) + " |"
+  rule = "|---|" + "---|" * len(shifts)
+  parts = [f"# Fusion study\n\n{note}"]
+  for metric, title in (("miou", "mIoU"), ("accuracy", "Accuracy")):
+    lines = [f"## {title} (%) with {conf} bootstrap intervals over sequences", "", head, rule]
+    for m in first["methods"]:
+      lines.append(f"| {m} | " + " | ".join(_cell(summary[s]["methods"][m][metric])
+                                              for s in shifts) + " |")
+    parts.append("\n".join(lines))
+  for metric, title in (("miou", "mIoU"), ("accuracy", "accuracy")):
+    lines = [f"## Paired differences of {title} (points, {conf} paired-bootstrap intervals)",
+             "", head.replace("Method", "Difference"), rule]
+    for d in first["differences"]:
+      lines.append(f"| {d} | " + " | ".join(_cell(summary[s]["differences"][d][metric],
+                                                    signed=True) for s in shifts) + " |")
+    parts.append("\n".join(lines))
+  methods = list(first["recovered"])
+  lines = ["## Voxel headroom (% of scored GT voxels) and % of outvoted-right voxels recovered",
+           "", "| Shift | " + " | ".join(HEADROOM) + " | " +
+           " | ".join(f"{m} recovers" for m in methods) + " |",
+           "|---|" + "---|" * (len(HEADROOM) + len(methods))]
+  for s in shifts:
+    r = summary[s]
+    lines.append(f"| {s} | " + " | ".join(_cell(r["headroom"][c]) for c in HEADROOM) + " | " +
+                 " | ".join(_cell(r["recovered"][m]["share"]) for m in methods) + " |")
+  parts.append("\n".join(lines))
+  lines = ["## Front end: right pixel observations and α = −log var of the predicted class", "",
+           "| Shift | right pixels (%) | median α right | median α wrong | AUROC(α: right vs "
+           "wrong) |", "|---|---|---|---|---|"]
+  for s in shifts:
+    a = summary[s]["alpha"]
+    auroc = a["auroc"]
+    auroc_cell = ("–" if not np.isfinite(auroc["estimate"]) else
+                  f"{auroc['estimate']:.3f} [{auroc['low']:.3f}, {auroc['high']:.3f}]")
+    lines.append(f"| {s} | {_cell(a['right_share'])} | {a['median_right']:.2f} | "
+                 f"{a['median_wrong']:.2f} | {auroc_cell} |")
+  parts.append("\n".join(lines))
+  return "\n\n".join(parts) + "\n"
+
+
+def _csv(summary: dict) -> str:
+  buf = _io.StringIO()
+  w = csv.writer(buf)
+  w.writerow(["shift", "section", "name", "metric", "estimate", "low", "high"])
+
+  def row(s, section, name, metric, iv):
+    w.writerow([s, section, name, metric] + [f"{iv[k]:.6f}" for k in ("estimate", "low",
+                                                                        "high")])
+
+  for s, r in summary.items():
+    for m, v in r["methods"].items():
+      for metric in ("miou", "accuracy"):
+        row(s, "method", m, metric, v[metric])
+    for d, v in r["differences"].items():
+      for metric in ("miou", "accuracy"):
+        row(s, "difference", d, metric, v[metric])
+    for c, v in r["headroom"].items():
+      row(s, "headroom", c, "share", v)
+    for m, v in r["recovered"].items():
+      row(s, "recovered", m, "share_of_outvoted_right", v["share"])
+    row(s, "front_end", "alpha", "auroc", r["alpha"]["auroc"])
+    row(s, "front_end", "pixels", "right_share", r["alpha"]["right_share"])
+  return buf.getvalue()
+
+
+def _jsonable(x):
+  if isinstance(x, dict):
+    return {str(k): _jsonable(v) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [_jsonable(v) for v in x]
+  if isinstance(x, np.ndarray):
+    return _jsonable(x.tolist())
+  if isinstance(x, (np.integer,)):
+    return int(x)
+  if isinstance(x, (float, np.floating)):
+    return None if not np.isfinite(x) else float(x)
+  return x
+
+
+def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: StudyConfig, *,
+                  model_id: str, timing: dict) -> list:
+  """Writes the tables (Markdown, CSV, JSON) and the four PNG figures; returns the paths."""
+  os.makedirs(out_dir, exist_ok=True)
+  shifts = np.array([float(s) for s in config.shifts])
+  note = (f"{len(config.units)} sequences per shift ({len(config.seeds)} layout seed(s) × "
+          f"{len(config.envs)} environment(s) × {len(config.trajectories)} trajectory(ies)), "
+          f"{config.num_frames} frames at {config.height}×{config.width}, M = "
+          f"{config.num_samples}, β = {config.beta}, {config.voxel_size} m voxels, pixel "
+          f"aggregation: {config.aggregate}; layout seeds {list(config.seeds)}; "
+          f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
+          f"{timing['total_s']:.0f} s in all.")
+  table = format_tables(summary, config, note)
+  paths = {n: os.path.join(out_dir, n) for n in (
+      "study.md", "study.csv", "study.json", "miou_vs_shift.png", "differences_vs_shift.png",
+      "headroom.png", "alpha_hist.png")}
+  io.atomic_write(paths["study.md"], lambda tmp: open(tmp, "w").write(table))
+  text = _csv(summary)
+  io.atomic_write(paths["study.csv"], lambda tmp: open(tmp, "w").write(text))
+  payload = _jsonable({
+      "config": dataclasses.asdict(config), "model": model_id, "timing": timing,
+      "headroom_categories": list(HEADROOM), "alpha_edges": ALPHA_EDGES,
+      "summary": summary,
+      "sequences": [{k: v for k, v in r.items()} for r in per_sequence]})
+  io.atomic_write(paths["study.json"], lambda tmp: open(tmp, "w").write(json.dumps(payload)))
+
+  def curves(section, metric):
+    names = summary[next(iter(summary))][section]
+    return {n: tuple(np.array([summary[s][section][n][metric][k] for s in summary], float)
+                     for k in ("estimate", "low", "high")) for n in names}
+
+  figures.bands_vs_shift(paths["miou_vs_shift.png"],
+                         shifts, {"mIoU": curves("methods", "miou"),
+                                  "accuracy": curves("methods", "accuracy")}, ylabel="%")
+  figures.bands_vs_shift(paths["differences_vs_shift.png"], shifts,
+                         {"mIoU difference": curves("differences", "miou"),
+                          "accuracy difference": curves("differences", "accuracy")},
+                         ylabel="points", zero_line=True)
+  shares = np.array([[summary[s]["headroom"][c]["estimate"] for c in HEADROOM]
+                     for s in summary], float)
+  recovered = {m: np.array([summary[s]["recovered"][m]["share"]["estimate"] for s in summary],
+                           float) for m in summary[next(iter(summary))]["recovered"]}
+  figures.headroom_bars(paths["headroom.png"], shifts, np.nan_to_num(shares), HEADROOM,
+                        recovered)
+  hist = np.stack([np.sum([r["alpha_hist"] for r in per_sequence if r["shift"] == float(s)],
+                          axis=0) for s in config.shifts])                # (shifts, 2, nb)
+  figures.alpha_histograms(paths["alpha_hist.png"], shifts, ALPHA_EDGES, hist[:, 0], hist[:, 1])
+  return list(paths.values())
+
+
+# --- the whole study ---------------------------------------------------------------------------
+def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = None,
+              checkpoint: Optional[str] = None, front_end=None) -> dict:
+  """Runs the grid, writes tables and figures, returns the summary.
+
+  Args:
+    config: what to run (validated here).
+    out_dir: output folder.
+    cache_dir: front-end cache folder (default `OUT/cache`; the demo's cache can be shared).
+    checkpoint: network weights (default: the shipped ones); ignored when `front_end` is given.
+    front_end: an object with `model_id` (str) and `predict(rgb (T, H, W, 3) uint8, *,
+      num_samples, key) -> (det, mean, var)` each `(T, H, W, K)`, instead of the shipped
+      network (e.g. a simulated one).
+
+  Returns:
+    dict with `summary` (see `summarize`), `table` (Markdown), `files`, `timing` (seconds per
+    stage and in all) and `sequences` (per-sequence raw results).
+  """
+  from jaxfusion import datasets
+  config.validate()
+  start = time.perf_counter()
+  os.makedirs(out_dir, exist_ok=True)
+  cache_dir = cache_dir or os.path.join(out_dir, "cache")
+  front_end = front_end if front_end is not None else experiments.FrontEnd(checkpoint)
+  timing = {"render_s": 0.0, "front_end_s": 0.0, "fusion_s": 0.0}
+  per_sequence = []
+  grid = [(u, s) for u in config.units for s in config.shifts]
+  for (seed, env, traj), shift in tqdm(grid, desc="study"):
+    t0 = time.perf_counter()
+    seq = datasets.make_sequence(env, traj, domain="test", num_frames=config.num_frames,
+                                 height=config.height, width=config.width, seed=seed,
+                                 shift=float(shift))
+    gt = datasets.gt_voxel_labels(seq, voxel_size=config.voxel_size, capacity=config.capacity)
+    t1 = time.perf_counter()
+    preds = experiments.cached_predictions(front_end, seq, config.experiment_config(seed, shift),
+                                           cache_dir)
+    t2 = time.perf_counter()
+    result = analyze_sequence(seq, preds, gt, config)
+    t3 = time.perf_counter()
+    timing["render_s"] += t1 - t0
+    timing["front_end_s"] += t2 - t1
+    timing["fusion_s"] += t3 - t2
+    result.update(unit=(int(seed), env, int(traj)), shift=float(shift),
+                  sequence=f"{seq.name}_s{seed}_shift{float(shift):g}")
+    per_sequence.append(result)
+  summary = summarize(per_sequence, config)
+  timing["total_s"] = time.perf_counter() - start
+  files = write_outputs(out_dir, summary, per_sequence, config, model_id=front_end.model_id,
+                        timing=timing)
+  timing["total_s"] = time.perf_counter() - start
+  return {"summary": summary, "table": format_tables(summary, config), "files": files,
+          "timing": timing, "sequences": per_sequence}
+
+
+# --- command line ------------------------------------------------------------------------------
+def add_study_parser(sub) -> argparse.ArgumentParser:
+  """Adds the `study` subcommand to an argparse subparsers object."""
+  p = sub.add_parser("study", help="the fusion experiment as a study: rules × shifts × seeds × "
+                                   "sequences, with bootstrap intervals, headroom and oracle")
+  p.add_argument("--quick", action="store_true",
+                 help="1 seed × 2 envs × 1 trajectory × 3 shifts, 12 frames at 60×80, M = 8 "
+                      "(≤ 3 min on 2 cores)")
+  p.add_argument("--out", default="outputs/study", help="output folder")
+  p.add_argument("--cache", default=None, help="front-end cache folder (default OUT/cache)")
+  p.add_argument("--checkpoint", default=None, help="network weights (default: shipped)")
+  p.add_argument("--seeds", nargs="+", type=int, default=None,
+                 help=f"layout seeds (default 1 2 3; the demo uses {DEMO_SEED})")
+  p.add_argument("--shifts", nargs="+", type=float, default=None,
+                 help="domain shifts in [0, 1] (default 0 0.25 0.5 0.75 1)")
+  p.add_argument("--envs", nargs="+", choices=("office", "house"), default=None)
+  p.add_argument("--trajectories", nargs="+", type=int, choices=(0, 1, 2), default=None)
+  p.add_argument("--frames", type=int, default=None, help="frames per sequence")
+  p.add_argument("--height", type=int, default=None)
+  p.add_argument("--width", type=int, default=None)
+  p.add_argument("--num-samples", type=int, default=None, help="MC dropout samples M")
+  p.add_argument("--beta", type=float, default=None, help="β of R and D+R")
+  p.add_argument("--aggregate", choices=("sum", "mean"), default=None)
+  p.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
+  p.set_defaults(func=cmd_study)
+  return p
+
+
+def cmd_study(args) -> dict:
+  """Runs `jaxfusion study` from parsed arguments and prints the tables."""
+  overrides = {}
+  for arg, field, cast in (("seeds", "seeds", tuple), ("shifts", "shifts", tuple),
+                           ("envs", "envs", tuple), ("trajectories", "trajectories", tuple),
+                           ("frames", "num_frames", int), ("height", "height", int),
+                           ("width", "width", int), ("num_samples", "num_samples", int),
+                           ("beta", "beta", float), ("aggregate", "aggregate", str),
+                           ("resamples", "num_resamples", int)):
+    value = getattr(args, arg, None)
+    if value is not None:
+      overrides[field] = cast(value)
+  config = StudyConfig.quick(**overrides) if args.quick else StudyConfig(**overrides)
+  out = run_study(config.validate(), args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
+  print(out["table"])
+  t = out["timing"]
+  print(f"wrote {len(out['files'])} files under {args.out}/ (study.md/.csv/.json, "
+        f"miou_vs_shift.png, differences_vs_shift.png, headroom.png, alpha_hist.png) in "
+        f"{t['total_s']:.0f} s (render + GT {t['render_s']:.0f} s, front end "
+        f"{t['front_end_s']:.0f} s, fusion and counts {t['fusion_s']:.0f} s)")
+  return out

@@ -1,0 +1,218 @@
+"""The study: headroom classification, pixel→voxel observations, the oracle bound, histogram
+statistics, the cache key, and a tiny end-to-end run with a simulated front end."""
+
+import json
+import os
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfusion as jf
+from jaxfusion import camera as camera_lib
+from jaxfusion import cli
+from jaxfusion import experiments
+from jaxfusion import stats
+from jaxfusion import study
+
+# Shapes shared with tests/test_experiments.py so that compiled fusion steps are reused.
+H, W, CAPACITY = 24, 32, 2**14
+K = 7
+
+
+class SimulatedFrontEnd:
+  """A deterministic stand-in for the network: a fixed colour → class map plus dropout noise."""
+  model_id = "simulated-test"
+
+  def __init__(self):
+    rng = np.random.default_rng(0)
+    self.weights = rng.normal(0.0, 3.0, (3, K)).astype(np.float32)
+    self.calls = 0
+
+  def predict(self, rgb, *, num_samples, key):
+    self.calls += 1
+    logits = np.asarray(rgb, np.float32) / 255.0 @ self.weights
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
+    samples = _softmax(logits[None] + rng.normal(0.0, 1.0, (num_samples,) + logits.shape))
+    return _softmax(logits), samples.mean(0), samples.var(0)
+
+
+def _softmax(x):
+  e = np.exp(x - x.max(-1, keepdims=True))
+  return (e / e.sum(-1, keepdims=True)).astype(np.float32)
+
+
+def test_classify_voxels_hand_built():
+  # votes per voxel (K = 3): [3,1,0] y=0 | [2,1,0] y=1 | [1,1,1] y=2 (tie) | [0,2,0] y=0 | none
+  votes = {0: [0, 0, 0, 1], 1: [0, 0, 1], 2: [0, 1, 2], 3: [1, 1]}
+  gt_index = np.array([v for v, preds in votes.items() for _ in preds])
+  pred = np.array([p for preds in votes.values() for p in preds])
+  got = study.classify_voxels(np.array([0, 1, 2, 0, 1]), gt_index, pred, 3)
+  np.testing.assert_array_equal(got, [0, 1, 1, 2, -1])
+
+
+def test_classify_voxels_against_a_loop():
+  rng = np.random.default_rng(4)
+  g, k = 40, 4
+  labels = rng.integers(0, k, g)
+  gt_index = rng.integers(-1, g, 300)
+  pred = rng.integers(0, k, 300)
+  got = study.classify_voxels(labels, gt_index, pred, k)
+  for v in range(g):
+    n = np.array([np.sum((gt_index == v) & (pred == c)) for c in range(k)])
+    others = max(n[c] for c in range(k) if c != labels[v])
+    want = -1 if n.sum() == 0 else 2 if n[labels[v]] == 0 else 0 if n[labels[v]] > others else 1
+    assert got[v] == want, v
+
+
+def _plane_scene(rng, num_frames=4, voxel_size=0.5):
+  """Frames of a wall 2 m ahead seen from shifted positions; GT by voxel column."""
+  cam = jf.Camera(16.0, 16.0, (W - 1) / 2, (H - 1) / 2)
+  depth = np.full((num_frames, H, W), 2.0, np.float32)
+  depth[:, :2, :3] = 0.0                                    # a hole: not observations
+  poses = np.tile(np.eye(4, dtype=np.float32), (num_frames, 1, 1))
+  poses[:, 0, 3] = np.linspace(0.0, 0.7, num_frames)
+  poses[:, 1, 3] = 0.05
+  keys = np.stack([np.asarray(camera_lib.depth_to_voxel_keys(depth[t], poses[t], cam,
+                                                             voxel_size)[0])
+                   for t in range(num_frames)])             # (T, N, 3)
+  valid = depth.reshape(num_frames, -1) > 0
+  coords = np.unique(keys[valid], axis=0)
+  labels = (coords[:, 0] * 5 + coords[:, 1] * 3) % K
+  seq = types.SimpleNamespace(depth=depth, T_world_cam=poses, camera=cam)
+  return seq, {"coords": coords.astype(np.int32), "labels": labels.astype(np.int32)}, keys, valid
+
+
+def test_pixel_observations_against_a_dict_lookup():
+  rng = np.random.default_rng(1)
+  seq, gt, keys, valid = _plane_scene(rng)
+  keep = rng.uniform(size=len(gt["coords"])) < 0.7          # some voxels are not in the GT
+  gt = {k: v[keep] for k, v in gt.items()}
+  probs = rng.dirichlet(np.ones(K), seq.depth.shape).astype(np.float32)
+  probs[0, 5, 5] = np.nan                                   # not an observation
+  obs = study.pixel_observations(seq.depth, seq.T_world_cam, seq.camera, probs, gt["coords"],
+                                 voxel_size=0.5)
+  index = {tuple(c): i for i, c in enumerate(gt["coords"])}
+  want = np.array([[index.get(tuple(keys[t, n]), -1) if valid[t, n] else -1
+                    for n in range(H * W)] for t in range(len(keys))])
+  want[0, 5 * W + 5] = -1
+  np.testing.assert_array_equal(obs["gt_index"], want)
+  np.testing.assert_array_equal(obs["pred"], np.argmax(probs, -1).reshape(len(keys), -1))
+
+
+def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
+  rng = np.random.default_rng(2)
+  seq, gt, keys, valid = _plane_scene(rng)
+  index = {tuple(c): i for i, c in enumerate(gt["coords"])}
+  g = np.array([[index.get(tuple(k), 0) for k in frame] for frame in keys]).reshape(
+      seq.depth.shape)                                      # GT voxel of each pixel
+  t = np.arange(len(keys))[:, None, None]
+  # Errors are coherent per voxel and frame: in frame t all pixels of voxel v vote for v's
+  # wrong class with probability p_v (p_v = 1 for a fifth of the voxels: never right). Right
+  # pixels are 0.6-confident with a low variance; wrong ones 0.8-confident, half of them with
+  # a high variance.
+  num_gt = len(gt["coords"])
+  p_wrong = np.where(rng.uniform(size=num_gt) < 0.2, 1.0, rng.uniform(size=num_gt))
+  wrong_class = (gt["labels"] + rng.integers(1, K, num_gt)) % K
+  wrong = (rng.uniform(size=(len(keys), num_gt)) < p_wrong)[t, g]
+  y = gt["labels"][g]
+  vote = np.where(wrong, wrong_class[g], y)
+  conf = np.where(wrong, 0.8, 0.6)
+  probs = np.full(y.shape + (K,), 0.0, np.float32)
+  probs[...] = ((1 - conf) / (K - 1))[..., None]
+  np.put_along_axis(probs, vote[..., None], conf[..., None], -1)
+  var = np.where((wrong & (rng.uniform(size=y.shape) < 0.5))[..., None], 0.05, 0.002)
+  preds = {"det": probs, "mean": probs, "var": var.astype(np.float32) * np.ones_like(probs)}
+  config = study.StudyConfig(height=H, width=W, capacity=CAPACITY, voxel_size=0.5)
+  res = study.analyze_sequence(seq, preds, gt, config)
+  head = res["headroom"]
+  assert np.all(head > 0), head                            # every category occurs
+  assert head.sum() == len(gt["coords"])
+  oracle = res["correct"][study.ORACLE]
+  np.testing.assert_array_equal(oracle[:2], head[:2])
+  assert oracle[2] == res["correct"]["bayes"][2]
+  for name in config.rules:
+    cm_rule, cm_oracle = res["confusion"][name], res["confusion"][study.ORACLE]
+    assert res["correct"][name].sum() == np.trace(cm_rule), name
+    assert np.all(res["correct"][name] <= oracle), name
+    assert stats.accuracy(cm_oracle) >= stats.accuracy(cm_rule), name
+    assert stats.miou(cm_oracle) >= stats.miou(cm_rule), name
+  # α histograms hold every pixel observation once, split by right / wrong.
+  n_obs = int(valid.sum())
+  assert res["alpha_hist"].sum() == n_obs == res["pixels"]["right"] + res["pixels"]["wrong"]
+
+
+def test_histogram_auroc_and_median_against_direct_computation():
+  rng = np.random.default_rng(3)
+  right = rng.integers(0, 20, 300)
+  wrong = rng.integers(0, 14, 200)
+  edges = np.arange(21.0)
+  hist = np.stack([np.histogram(right, edges)[0], np.histogram(wrong, edges)[0]])
+  direct = np.mean((right[:, None] > wrong[None]) + 0.5 * (right[:, None] == wrong[None]))
+  assert study.histogram_auroc(hist[None])[0] == pytest.approx(direct)
+  assert study.histogram_median(np.bincount(np.full(5, 3), minlength=20), edges) == 3.5
+  assert np.isnan(study.histogram_auroc(np.zeros((2, 20))))
+
+
+class _Images:
+  """What `cached_predictions` reads of a sequence: name, rgb, length."""
+  name = "fake_0_test"
+
+  def __init__(self, rgb):
+    self.rgb = rgb
+
+  def __len__(self):
+    return len(self.rgb)
+
+
+def test_cache_key_changes_with_the_images(tmp_path):
+  front = SimulatedFrontEnd()
+  config = experiments.ExperimentConfig(num_frames=2, height=4, width=5, num_samples=2)
+  rgb = np.zeros((2, 4, 5, 3), np.uint8)
+  for value in (0, 0, 9):
+    seq = _Images(rgb + np.uint8(value))
+    experiments.cached_predictions(front, seq, config, str(tmp_path))
+  assert len(os.listdir(tmp_path)) == 2 and front.calls == 2
+
+
+def test_tiny_study_end_to_end(tmp_path):
+  config = study.StudyConfig(seeds=(5,), shifts=(0.0, 1.0), envs=("office",), trajectories=(0,),
+                             num_frames=3, height=H, width=W, num_samples=3, capacity=CAPACITY,
+                             num_resamples=50)
+  front = SimulatedFrontEnd()
+  out = study.run_study(config, str(tmp_path), front_end=front)
+  for name in ("study.md", "study.csv", "study.json", "miou_vs_shift.png",
+               "differences_vs_shift.png", "headroom.png", "alpha_hist.png"):
+    path = tmp_path / name
+    assert path.exists() and path.stat().st_size > 200, name
+    if name.endswith(".png"):
+      assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+  with open(tmp_path / "study.json") as f:
+    payload = json.load(f)
+  assert set(payload["summary"]) == {"0", "1"} and len(payload["sequences"]) == 2
+  shift0 = payload["summary"]["0"]
+  assert set(shift0["methods"]) == {"Sum probs", "Sum labels", "Bayesian", "R", "D", "D+R",
+                                    "Oracle"}
+  assert "D+R − Bayesian" in shift0["differences"]
+  # One sequence per shift: every interval collapses onto its estimate.
+  for iv in (shift0["methods"]["D+R"]["miou"], shift0["differences"]["D+R − Bayesian"]["miou"]):
+    assert iv["low"] == iv["high"] == pytest.approx(iv["estimate"])
+  shares = [shift0["headroom"][c]["estimate"] for c in study.HEADROOM]
+  assert sum(shares) == pytest.approx(1.0)
+  assert "| D+R − Bayesian |" in out["table"] and "Oracle" in out["table"]
+  assert len(os.listdir(tmp_path / "cache")) == 2 and front.calls == 2
+  study.run_study(config, str(tmp_path), front_end=front)
+  assert front.calls == 2                                   # the cache was reused
+
+
+def test_cli_study_help_and_bad_input(capsys):
+  with pytest.raises(SystemExit) as e:
+    cli.main(["study", "--help"])
+  assert e.value.code == 0 and "--quick" in capsys.readouterr().out
+  assert cli.main(["study", "--shifts", "1.5"]) == 2
+  err = capsys.readouterr().err
+  assert "shifts must lie in [0, 1]" in err and "Traceback" not in err
+  with pytest.raises(ValueError, match="bayes"):
+    study.StudyConfig(rules=("robust_dr",)).validate()
