@@ -3,7 +3,8 @@
 Every source yields the same interface, an `RGBDSequence` of `RGBDFrame`s:
 
 * `synthetic.make_sequence(env, trajectory, ...)` / `synthetic.sample_views(...)` — the
-  procedural "office"/"house" world with a train/test appearance domain gap;
+  procedural "office"/"house" world with a train/test appearance domain gap, seen through the
+  view-dependent camera model `SensingConfig` (`SensingConfig.off()`: the plain sensor);
 * `load_scannet(path)` — ScanNet exports (NYU40 → 12 classes, see `classes.NYU40_TABLE`);
 * `load_tum(path)` — TUM RGB-D folders;
 * `middlebury_frame()` — one real RGB-D frame from scikit-image's Middlebury pair;
@@ -20,6 +21,7 @@ from jaxfusion.datasets.ground_truth import gt_voxel_labels
 from jaxfusion.datasets.middlebury import middlebury_frame
 from jaxfusion.datasets.preview import render_preview
 from jaxfusion.datasets.scannet import load_scannet
+from jaxfusion.datasets.sensing import SensingConfig
 from jaxfusion.datasets.sequence import RGBDFrame
 from jaxfusion.datasets.sequence import RGBDSequence
 from jaxfusion.datasets.sequence import Sequence
@@ -31,7 +33,8 @@ from jaxfusion.datasets.tum import load_tum
 
 __all__ = sorted([
     "CLASS_COLORS", "CLASS_NAMES", "IGNORE_LABEL", "NYU40_TO_SCANNET12", "RGBDFrame",
-    "RGBDSequence", "SCANNET_CLASS_NAMES", "SCANNET_COLORS", "Sequence", "gt_voxel_labels",
+    "RGBDSequence", "SCANNET_CLASS_NAMES", "SCANNET_COLORS", "Sequence", "SensingConfig",
+    "gt_voxel_labels",
     "list_sequences", "load_scannet", "load_sequence", "load_tum", "make_sequence",
     "middlebury_frame", "render_preview", "sample_views",
 ])

@@ -107,6 +107,18 @@ PALETTES = {
 }
 
 
+# Glossiness of each material slot, the same in both domains (a property of what the surface
+# is made of, not of its colour): glass, screens, lacquer and metal are glossy; fabric, foliage,
+# cardboard, rugs and painted walls and ceilings are (nearly) matte. Used by `sensing` only.
+GLOSS = {
+    "chair": 0.35, "chair_legs": 0.8, "table": 0.6, "table_legs": 0.8, "sofa": 0.1,
+    "tv_frame": 0.7, "tv_screen": 1.0, "bottle": 1.0, "bottle_cap": 0.6, "foliage": 0.3,
+    "pot": 0.7, "wall": 0.05, "floor": 0.35, "ceiling": 0.0, "door": 0.4, "window": 1.0,
+    "frame": 0.5, "shelf": 0.4, "cardboard": 0.05, "lamp": 0.3, "metal": 0.9, "picture": 0.5,
+    "rug": 0.0, "light_panel": 0.0,
+}
+
+
 def material(slot: str, u, s: float, *, emission: float = 0.0) -> Material:
   """Picks the material of one part, deterministically from 4 uniform draws.
 
@@ -117,7 +129,8 @@ def material(slot: str, u, s: float, *, emission: float = 0.0) -> Material:
     emission: self-illumination.
 
   Returns:
-    A `Material` whose colour lies `s` of the way from the train pick to the test pick.
+    A `Material` whose colour lies `s` of the way from the train pick to the test pick, with
+    the slot's glossiness `GLOSS[slot]`.
   """
   pal = PALETTES[slot]
   u = np.asarray(u, np.float64)
@@ -133,7 +146,8 @@ def material(slot: str, u, s: float, *, emission: float = 0.0) -> Material:
     # The secondary colour: darker (train) or hue-rotated (test) version of the base colour.
     color2 = lerp(color * (1.0 - contrast), np.roll(color, 1) * (1.0 - 0.5 * contrast), s)
   scale = float(lerp(pal.scale[0], pal.scale[1], u[3]))
-  return Material(color, np.clip(color2, 0.0, 1.0), int(texture), scale, float(emission))
+  return Material(color, np.clip(color2, 0.0, 1.0), int(texture), scale, float(emission),
+                  GLOSS[slot])
 
 
 class Lighting(NamedTuple):
@@ -253,7 +267,7 @@ def texture(p_local, texture_id, scale, color, color2):
   return jnp.where((texture_id == SCREEN)[:, None], screen, albedo)
 
 
-def shade(albedo, normal, p_world, view_dir, emission, light: Lighting):
+def shade(albedo, normal, p_world, view_dir, emission, light: Lighting, *, clip: bool = True):
   """Lambert + Blinn-Phong shading with a directional and a point light.
 
   Args:
@@ -263,9 +277,11 @@ def shade(albedo, normal, p_world, view_dir, emission, light: Lighting):
     view_dir: `(N, 3)` unit ray directions.
     emission: `(N,)` self-illumination in [0, 1].
     light: `Lighting`.
+    clip: clip to [0, 1] (a fixed-exposure image); False returns the radiance (≥ 0) that
+      `sensing.camera_image` exposes.
 
   Returns:
-    `(N, 3) float32` linear colour in [0, 1].
+    `(N, 3) float32` linear colour in [0, 1] (or ≥ 0 without `clip`).
   """
   to_sun = -light.sun_dir
   sun = jnp.maximum(jnp.sum(normal * to_sun, -1, keepdims=True), 0.0) * light.sun_color
@@ -279,4 +295,6 @@ def shade(albedo, normal, p_world, view_dir, emission, light: Lighting):
   spec = light.specular * jnp.maximum(jnp.sum(normal * half, -1, keepdims=True), 0.0) ** 24
   lit = albedo * (light.ambient + sun + lamp) + spec
   lit = lit + emission[:, None] * (1.1 * albedo - lit)
+  if not clip:
+    return jnp.maximum(lit * light.exposure, 0.0)
   return jnp.clip(lit * light.exposure, 0.0, 1.0)

@@ -31,12 +31,15 @@ class Material(NamedTuple):
     texture: texture id (`PLAIN`, `STRIPES`, `CHECKER`, `WOOD`, `NOISE`, `SCREEN`).
     scale: texture frequency in cycles per metre.
     emission: self-illumination in [0, 1] (lamps, windows, screens).
+    gloss: strength in [0, 1] of the sharp specular lobe that `sensing` adds (0: matte, such
+      as fabric or cardboard; 1: glass, lacquer, polished metal).
   """
   color: np.ndarray
   color2: np.ndarray
   texture: int
   scale: float
   emission: float
+  gloss: float = 0.0
 
 
 class Primitives(NamedTuple):
@@ -54,6 +57,7 @@ class Primitives(NamedTuple):
     texture: `(P,) int32` texture id.
     texture_scale: `(P,) float32` texture frequency in cycles per metre.
     emission: `(P,) float32` self-illumination.
+    gloss: `(P,) float32` glossiness of the material (see `Material.gloss`).
   """
   kind: np.ndarray
   center: np.ndarray
@@ -66,6 +70,7 @@ class Primitives(NamedTuple):
   texture: np.ndarray
   texture_scale: np.ndarray
   emission: np.ndarray
+  gloss: np.ndarray
 
   def __len__(self) -> int:
     return int(self.kind.shape[0])
@@ -153,6 +158,7 @@ def to_table(placed) -> Primitives:
       texture=np.asarray([p.material.texture for p in parts], np.int32),
       texture_scale=f32([p.material.scale for p in parts]),
       emission=f32([p.material.emission for p in parts]),
+      gloss=f32([p.material.gloss for p in parts]),
   )
 
 

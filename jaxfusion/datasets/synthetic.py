@@ -9,6 +9,12 @@ trained on different data) is replaced by procedural rooms rendered with a JAX r
   segmentation net on the "train" domain and meet the "test" domain at mapping time;
 * `make_scene` / `render` — the scene and the single-frame renderer behind them.
 
+With `realism` (the default of the sequences and views), colour goes through the camera model
+of `sensing.SensingConfig` — auto-exposure and white-balance drift, motion blur, defocus, glossy
+highlights, vignetting, per-frame sensor noise — in both domains; `SensingConfig.off()` gives
+the plain sensor model (blur, vignetting and noise alike in every frame). Depth keeps its own
+sensor model and the labels stay exact either way.
+
 Example:
   >>> seq = make_sequence("office", 0, num_frames=30, height=120, width=160)
   >>> frame = seq[0]; frame.depth.shape
@@ -23,8 +29,10 @@ import numpy as np
 
 from jaxfusion.camera import Camera
 from jaxfusion.datasets import appearance, raycast, scene, sensor, trajectories
+from jaxfusion.datasets import sensing as camera_model
 from jaxfusion.datasets.classes import BACKGROUND, CLASS_NAMES
 from jaxfusion.datasets.primitives import Primitives
+from jaxfusion.datasets.sensing import CameraState, SensingConfig
 from jaxfusion.datasets.sequence import RGBDFrame, RGBDSequence
 
 ENVIRONMENTS = scene.ENVIRONMENTS
@@ -99,9 +107,56 @@ def _shade(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Li
   return rgb.reshape(hits.normal.shape)
 
 
+@jax.jit
+def _radiance(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Lighting,
+              gloss, shininess):
+  """`(H, W, 3)` unclipped scene radiance with the glossy highlights of `sensing`."""
+  p = packed.prims
+  g = jnp.maximum(hits.prim, 0).reshape(-1)
+  normal, p_world = hits.normal.reshape(-1, 3), hits.p_world.reshape(-1, 3)
+  view_dir = hits.view_dir.reshape(-1, 3)
+  albedo = appearance.texture(hits.p_local.reshape(-1, 3), p.texture[g], p.texture_scale[g],
+                              p.color[g], p.color2[g])
+  rgb = appearance.shade(albedo, normal, p_world, view_dir, p.emission[g], light, clip=False)
+  rgb = rgb + light.exposure * camera_model.glossy_highlight(
+      normal, p_world, view_dir, p.gloss[g], light.lamp_pos, light.lamp_color, light.sun_dir,
+      light.sun_color, strength=gloss, shininess=shininess)
+  rgb = jnp.where((hits.prim.reshape(-1) >= 0)[:, None], rgb, 0.0)
+  return rgb.reshape(hits.normal.shape)
+
+
+def _check_sensing(sensing) -> SensingConfig:
+  if sensing is None:
+    return SensingConfig()
+  if not isinstance(sensing, SensingConfig):
+    raise TypeError(f"sensing must be a SensingConfig or None; got {type(sensing).__name__}")
+  return sensing.validate()
+
+
+def _cast(synthetic_scene: SyntheticScene, T, camera: Camera, height: int, width: int,
+          tile_sizes, pack_step: int):
+  packed = raycast.pack(synthetic_scene.primitives, step=pack_step)
+  tiles = raycast.tile_lists(packed, T, camera, height=height, width=width, tile=TILE,
+                             min_sizes=tile_sizes)
+  return packed, raycast.cast(packed, T, camera, height=height, width=width, tiles=tiles,
+                              tile=TILE)
+
+
+def _converged_exposure(radiance, config: SensingConfig, bias: float = 0.0) -> float:
+  """The exposure a settled AE picks for a frame (set-point `ae_target · e^bias`)."""
+  metered = float(camera_model.meter(radiance))
+  exposure = config.ae_target * np.exp(bias) / max(metered, 1e-4)
+  return float(np.clip(exposure, config.exposure_min, config.exposure_max))
+
+
+def _to_uint8(rgb) -> np.ndarray:
+  return np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8)
+
+
 def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, height: int,
            width: int, realism: bool = False, key=None, tile_sizes=(0, 0, 0, 0),
-           pack_step: int = 64) -> RGBDFrame:
+           pack_step: int = 64, sensing: SensingConfig = None,
+           state: CameraState = None) -> RGBDFrame:
   """Renders one frame of a synthetic scene.
 
   Args:
@@ -110,34 +165,59 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
     camera: intrinsics.
     height: image rows H.
     width: image columns W.
-    realism: add sensor depth noise/holes and image blur/noise (labels stay exact).
+    realism: add sensor depth noise/holes and pass colour through the camera model (labels
+      stay exact). False gives the exact depth and the clean, fixed-exposure colour.
     key: PRNG key for the realism noise (default `PRNGKey(0)`).
     tile_sizes: lower bounds of the per-tile candidate list lengths (see
       `raycast.tile_lists`); give the maximum over a trajectory to compile once for all
       of its frames.
     pack_step: the per-kind primitive tables are padded to a multiple of this (coarser
       padding: fewer distinct shapes across scenes, hence fewer compilations).
+    sensing: the camera model used with `realism` (default `SensingConfig()`;
+      `SensingConfig.off()`: the plain blur, vignetting and noise of `sensor.noisy_image`).
+    state: this frame's `sensing.CameraState` (exposure, white balance, noise level, motion
+      during the exposure); default: a still camera whose auto-exposure has settled on this
+      frame, neutral white balance, nominal noise. Sequences pass the states of their camera
+      path (see `make_sequence`).
 
   Returns:
     `RGBDFrame` with `rgb (H, W, 3) uint8`, `depth (H, W) float32`, `labels`/`instances`
     `(H, W) int32`.
   """
-  packed = raycast.pack(synthetic_scene.primitives, step=pack_step)
+  config = _check_sensing(sensing)
   T = np.asarray(T_world_cam, np.float32)
-  tiles = raycast.tile_lists(packed, T, camera, height=height, width=width, tile=TILE,
-                             min_sizes=tile_sizes)
-  hits = raycast.cast(packed, T, camera, height=height, width=width, tiles=tiles, tile=TILE)
-  rgb = _shade(packed, hits, synthetic_scene.lighting)
+  packed, hits = _cast(synthetic_scene, T, camera, height, width, tile_sizes, pack_step)
+  frame, _ = _finish(synthetic_scene, packed, hits, T, camera, realism=realism, key=key,
+                     config=config, state=state)
+  return frame
+
+
+def _finish(synthetic_scene: SyntheticScene, packed, hits, T, camera: Camera, *, realism: bool,
+            key, config: SensingConfig, state):
+  """Colour and depth of a cast frame; returns `(RGBDFrame, metered brightness or None)`."""
   depth = hits.depth
-  if realism:
+  metered = None
+  if realism and config.enabled:
     key = jax.random.PRNGKey(0) if key is None else key
     k_depth, k_image = jax.random.split(key)
     depth = sensor.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
-    rgb = sensor.noisy_image(k_image, rgb)
-  rgb8 = np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8)
-  return RGBDFrame(rgb=rgb8, depth=np.asarray(depth, np.float32), T_world_cam=T, camera=camera,
-                   labels=np.asarray(hits.label, np.int32),
-                   instances=np.asarray(hits.instance, np.int32))
+    radiance = _radiance(packed, hits, synthetic_scene.lighting, np.float32(config.gloss),
+                         np.float32(config.shininess))
+    if state is None:
+      state = camera_model.still_state(_converged_exposure(radiance, config))
+    rgb, metered = camera_model.camera_image(k_image, radiance, hits.depth, camera, state, config)
+    metered = float(metered)
+  else:
+    rgb = _shade(packed, hits, synthetic_scene.lighting)
+    if realism:
+      key = jax.random.PRNGKey(0) if key is None else key
+      k_depth, k_image = jax.random.split(key)
+      depth = sensor.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
+      rgb = sensor.noisy_image(k_image, rgb)
+  frame = RGBDFrame(rgb=_to_uint8(rgb), depth=np.asarray(depth, np.float32), T_world_cam=T,
+                    camera=camera, labels=np.asarray(hits.label, np.int32),
+                    instances=np.asarray(hits.instance, np.int32))
+  return frame, metered
 
 
 def trajectory_tile_sizes(synthetic_scene: SyntheticScene, poses, camera: Camera, *,
@@ -151,8 +231,15 @@ def trajectory_tile_sizes(synthetic_scene: SyntheticScene, poses, camera: Camera
 
 def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames: int = 60,
                   height: int = 120, width: int = 160, seed: int = 0, shift: float = 1.0,
-                  realism: bool = True) -> RGBDSequence:
+                  realism: bool = True, sensing: SensingConfig = None) -> RGBDSequence:
   """Renders one of the paper-style sequences.
+
+  With `realism`, the camera model runs along the trajectory: the frames lie
+  `sensing.frame_interval` seconds apart (the path walked at `sensing.speed`), the
+  auto-exposure meters each frame and adapts the next one with its lag, exposure and white
+  balance drift, motion blur follows the velocity between consecutive poses (the first frame
+  uses that towards the second), and the noise level changes from frame to frame. The
+  per-frame camera settings are recorded in `info["camera_states"]`.
 
   Args:
     env: "office" or "house".
@@ -163,7 +250,9 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
     width: image columns W.
     seed: layout seed; the furniture and the path depend on `(env, seed)` only.
     shift: strength of the "test" domain gap in [0, 1].
-    realism: sensor noise on depth and colour (GT labels are always exact).
+    realism: sensor noise on depth and the camera model on colour (GT labels are always exact).
+    sensing: the camera model (default `SensingConfig()`; `SensingConfig.off()` for the plain
+      per-frame-identical sensor model).
 
   Returns:
     An `RGBDSequence` named `f"{env}_{trajectory}_{domain}"` with `CLASS_NAMES` labels and
@@ -173,30 +262,91 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
     raise ValueError(f"trajectory must be 0, 1 or 2; got {trajectory}")
   if height < 1 or width < 1:
     raise ValueError(f"image size must be positive; got {height}x{width}")
+  config = _check_sensing(sensing)
   world = make_scene(env, seed=seed, domain=domain, shift=shift)
   camera = default_camera(height, width)
   poses = trajectories.trajectory(world.layout.room, trajectory, num_frames)
   keys = jax.random.split(jax.random.PRNGKey(seed * 7 + trajectory), num_frames)
   sizes = trajectory_tile_sizes(world, poses, camera, height=height, width=width)
-  frames = [render(world, T, camera, height=height, width=width, realism=realism, key=k,
-                   tile_sizes=sizes) for T, k in zip(poses, keys)]
+  info = {"source": "synthetic", "env": env, "trajectory": int(trajectory),
+          "trajectory_name": trajectories.TRAJECTORY_NAMES[trajectory], "domain": domain,
+          "seed": int(seed), "shift": float(shift), "realism": bool(realism),
+          "room_size": [float(x) for x in world.layout.room]}
+  if realism and config.enabled:
+    frames, info["camera_states"] = _sensed_frames(world, poses, keys, camera, sizes, config,
+                                                   height=height, width=width,
+                                                   rng=np.random.default_rng([seed, trajectory,
+                                                                              len(env), 5151]))
+    info["sensing"] = config.as_dict()
+  else:
+    frames = [render(world, T, camera, height=height, width=width, realism=realism, key=k,
+                     tile_sizes=sizes, sensing=config) for T, k in zip(poses, keys)]
   return RGBDSequence(
       name=f"{env}_{trajectory}_{domain}", class_names=CLASS_NAMES, camera=camera,
       rgb=np.stack([f.rgb for f in frames]), depth=np.stack([f.depth for f in frames]),
       T_world_cam=poses, labels=np.stack([f.labels for f in frames]),
-      instances=np.stack([f.instances for f in frames]),
-      info={"source": "synthetic", "env": env, "trajectory": int(trajectory),
-            "trajectory_name": trajectories.TRAJECTORY_NAMES[trajectory], "domain": domain,
-            "seed": int(seed), "shift": float(shift), "realism": bool(realism),
-            "room_size": [float(x) for x in world.layout.room]})
+      instances=np.stack([f.instances for f in frames]), info=info)
+
+
+def _sensed_frames(world: SyntheticScene, poses, keys, camera: Camera, sizes,
+                   config: SensingConfig, *, height: int, width: int, rng) -> tuple:
+  """Renders a trajectory through the camera model; returns `(frames, camera_states dict)`."""
+  num_frames = len(poses)
+  dt = camera_model.frame_interval(poses, config.speed)
+  bias = camera_model.ou_process(rng, num_frames, dt, config.exposure_drift,
+                                 config.drift_time_constant)[:, 0]
+  log_wb = np.clip(camera_model.ou_process(rng, num_frames, dt, config.wb_drift,
+                                           config.drift_time_constant, dims=2),
+                   -config.wb_range, config.wb_range)
+  noise_scale = np.exp(config.noise_jitter * rng.normal(size=num_frames))
+  record = {"frame_interval_s": dt, "exposure": [], "exposure_time_s": [], "gain": [],
+            "white_balance": [], "noise_scale": [], "metered": []}
+  frames = []
+  log_exposure = None
+  for t, (T, k) in enumerate(zip(poses, keys)):
+    T = np.asarray(T, np.float32)
+    packed, hits = _cast(world, T, camera, height, width, sizes, 64)
+    if log_exposure is None:  # the camera was running before the first frame: AE settled
+      radiance = _radiance(packed, hits, world.lighting, np.float32(config.gloss),
+                           np.float32(config.shininess))
+      log_exposure = float(np.log(_converged_exposure(radiance, config, bias[0])))
+    exposure = float(np.exp(log_exposure))
+    exposure_time, gain = camera_model.split_exposure(exposure, config)
+    if num_frames > 1:
+      other = poses[t - 1] if t > 0 else poses[1]
+      v, w = camera_model.velocity(other, T, dt)
+      if t == 0:
+        v, w = -v, -w
+      motion = camera_model.motion_from_velocity(v, w, exposure_time)
+    else:
+      motion = camera_model.still_state().motion
+    wb = np.array([np.exp(log_wb[t, 0]), 1.0, np.exp(log_wb[t, 1])], np.float32)
+    state = CameraState(np.float32(exposure), np.float32(gain), wb, np.float32(noise_scale[t]),
+                        motion)
+    frame, metered = _finish(world, packed, hits, T, camera, realism=True, key=k, config=config,
+                             state=state)
+    frames.append(frame)
+    log_exposure = camera_model.ae_step(log_exposure, metered,
+                                        config.ae_target * np.exp(bias[t]), dt=dt, config=config)
+    for name, value in (("exposure", exposure), ("exposure_time_s", exposure_time),
+                        ("gain", gain), ("noise_scale", float(noise_scale[t])),
+                        ("metered", metered)):
+      record[name].append(round(float(value), 6))
+    record["white_balance"].append([round(float(x), 6) for x in wb])
+  return frames, record
 
 
 def sample_views(domain: str, num_images: int, *, height: int, width: int, seed: int = 0,
-                 shift: float = 1.0, views_per_scene: int = 8) -> tuple:
+                 shift: float = 1.0, views_per_scene: int = 8,
+                 sensing: SensingConfig = None) -> tuple:
   """Random labelled views of many random rooms of both environment styles.
 
   The rooms use layout seeds disjoint from those of `make_sequence` (which uses small seeds),
-  so a net trained on these views has never seen the evaluation rooms.
+  so a net trained on these views has never seen the evaluation rooms. Colour goes through the
+  same camera model as the sequences; as the views are independent, each draws its camera
+  settings from the model's stationary spread: exposure from a settled AE with a drifted
+  set-point, white balance and noise level from their drift distributions, and motion blur
+  from a random hand-held velocity (`sensing.random_velocity`).
 
   Args:
     domain: "train" or "test" appearance.
@@ -206,15 +356,19 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
     seed: seed of the whole draw.
     shift: strength of the "test" domain gap in [0, 1].
     views_per_scene: views rendered from each random room.
+    sensing: the camera model (default `SensingConfig()`; `SensingConfig.off()`: the plain
+      blur and noise of `sensor.noisy_image`). The rooms and poses do not depend on it.
 
   Returns:
-    `(rgb (n, H, W, 3) uint8, labels (n, H, W) int32)`; colour has sensor blur and noise,
+    `(rgb (n, H, W, 3) uint8, labels (n, H, W) int32)`; colour has the camera's effects,
     labels are exact.
   """
   if num_images < 0:
     raise ValueError(f"num_images must be ≥ 0; got {num_images}")
+  config = _check_sensing(sensing)
   camera = default_camera(height, width)
   rng = np.random.default_rng([int(seed), 424242])
+  sense_rng = np.random.default_rng([int(seed), 424243])  # camera draws: poses stay the same
   rgbs = np.zeros((num_images, height, width, 3), np.uint8)
   labels = np.zeros((num_images, height, width), np.int32)
   world = None
@@ -230,10 +384,31 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
       pl = objects[int(rng.integers(len(objects)))]
       target = pl.position + np.array([0.0, 0.0, 0.3])
     T = trajectories.random_view(rng, world.layout.room, target=target)
-    frame = render(world, T, camera, height=height, width=width, realism=False,
-                   tile_sizes=VIEW_TILE_SIZES, pack_step=VIEW_PACK_STEP)
-    rgb = sensor.noisy_image(jax.random.PRNGKey(int(rng.integers(2**31))),
-                             jnp.asarray(frame.rgb, jnp.float32) / 255.0)
-    rgbs[i] = np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8)
-    labels[i] = frame.labels
+    packed, hits = _cast(world, np.asarray(T, np.float32), camera, height, width,
+                         VIEW_TILE_SIZES, VIEW_PACK_STEP)
+    key = jax.random.PRNGKey(int(rng.integers(2**31)))
+    if config.enabled:
+      radiance = _radiance(packed, hits, world.lighting, np.float32(config.gloss),
+                           np.float32(config.shininess))
+      state = _random_state(sense_rng, radiance, T, config)
+      rgb, _ = camera_model.camera_image(key, radiance, hits.depth, camera, state, config)
+    else:
+      clean = _to_uint8(_shade(packed, hits, world.lighting))
+      rgb = sensor.noisy_image(key, jnp.asarray(clean, jnp.float32) / 255.0)
+    rgbs[i] = _to_uint8(rgb)
+    labels[i] = np.asarray(hits.label, np.int32)
   return rgbs, labels
+
+
+def _random_state(rng: np.random.Generator, radiance, T_world_cam,
+                  config: SensingConfig) -> CameraState:
+  """Camera settings of an independent view, drawn from the camera model's stationary spread."""
+  bias = rng.normal(0.0, config.exposure_drift)
+  exposure = _converged_exposure(radiance, config, bias)
+  exposure_time, gain = camera_model.split_exposure(exposure, config)
+  log_wb = np.clip(rng.normal(0.0, config.wb_drift, 2), -config.wb_range, config.wb_range)
+  v, w = camera_model.random_velocity(rng, T_world_cam, config)
+  return CameraState(np.float32(exposure), np.float32(gain),
+                     np.array([np.exp(log_wb[0]), 1.0, np.exp(log_wb[1])], np.float32),
+                     np.float32(np.exp(config.noise_jitter * rng.normal())),
+                     camera_model.motion_from_velocity(v, w, exposure_time))
