@@ -138,3 +138,34 @@ def test_cubes_keep_the_class_hues(session):
 
   _wait(page, problem, shots / "class_cubes.png")
   assert viewer.last_drawn["kind"] == "cubes"
+
+
+def test_switching_maps_keeps_the_camera(session):
+  viewer, page, shots = session
+  _show(viewer, color="class", draw="points")
+  start = _wait(page, _class_colours_problem, shots / "start.png")
+  (client,) = viewer.server.get_clients().values()
+  page.drag((560, 420), (700, 380))   # the user turns the view with the mouse
+
+  def silhouette(pixels):
+    return np.any(pixels < 245, axis=1)
+
+  def moved(pixels):
+    same = np.mean(silhouette(pixels) == silhouette(_scene(start)))
+    shown = np.mean(silhouette(pixels))
+    return "" if same < 0.97 and shown > 0.02 else (
+        f"the view did not move ({same:.1%} of pixels unchanged, {shown:.1%} drawn)")
+
+  before = _scene(_wait(page, moved, shots / "moved.png"))
+  position = np.asarray(client.camera.position)
+  other = next(name for name in viewer.controls["map"].options
+               if name != viewer.controls["map"].value)
+  viewer.controls["map"].value = other
+  assert viewer.last_drawn["map"] == viewer.current_map().path
+
+  def same_view(pixels):
+    same = np.mean(silhouette(pixels) == silhouette(before))
+    return "" if same > 0.995 else f"the view changed with the map ({same:.1%} of pixels same)"
+
+  _wait(page, same_view, shots / "switched.png")
+  np.testing.assert_allclose(client.camera.position, position, atol=1e-3)

@@ -130,3 +130,23 @@ def test_view_command_serves_and_stops_on_ctrl_c(maps):
     if proc.poll() is None:
       proc.kill()
       proc.wait()
+
+
+def test_sequence_control_switches_between_sequences(maps):
+  import dataclasses
+  other = [dataclasses.replace(m, sequence="hall", path=m.path + "#hall") for m in maps]
+  viewer = server.MapViewer([*maps, other[1]], port=0)
+  try:
+    c = viewer.controls
+    assert c["sequence"].visible and c["sequence"].options == ("floor", "hall")
+    c["map"].value = maps[1].name
+    c["sequence"].value = "hall"   # the same map name exists there: it is kept
+    assert c["map"].options == (other[1].name,)
+    assert viewer.last_drawn["map"] == other[1].path
+    c["sequence"].value = "floor"
+    assert viewer.last_drawn["map"] == maps[1].path
+    c["map"].value = maps[0].name
+    c["sequence"].value = "hall"   # Bayesian is not there: its only map is shown
+    assert c["map"].value == other[1].name and viewer.last_drawn["map"] == other[1].path
+  finally:
+    viewer.stop()

@@ -159,6 +159,20 @@ class HeadlessPage:
     result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
     return result.get("result", {}).get("value")
 
+  def drag(self, start: tuple, end: tuple, *, steps: int = 10) -> None:
+    """Drags the mouse with the left button held from `start` to `end` (CSS pixels)."""
+    (x0, y0), (x1, y1) = start, end
+    self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x0, y=y0)
+    self.call("Input.dispatchMouseEvent", type="mousePressed", x=x0, y=y0, button="left",
+              buttons=1, clickCount=1)
+    for i in range(1, steps + 1):
+      x, y = x0 + (x1 - x0) * i / steps, y0 + (y1 - y0) * i / steps
+      self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y, button="left",
+                buttons=1)
+      time.sleep(0.02)
+    self.call("Input.dispatchMouseEvent", type="mouseReleased", x=x1, y=y1, button="left",
+              buttons=0, clickCount=1)
+
   def screenshot_png(self) -> bytes:
     return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
 
