@@ -455,8 +455,65 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p.add_argument("--blocks-per-stage", type=int, default=net.SegNetConfig.blocks_per_stage)
   p.add_argument("--aspp-width", type=int, default=net.SegNetConfig.aspp_width)
   p.add_argument("--aspp-rates", default=",".join(map(str, net.SegNetConfig.aspp_rates)))
+  p.add_argument("--norm-groups", type=int, default=net.SegNetConfig.norm_groups)
   p.add_argument("--dropout", type=float, default=net.SegNetConfig.dropout_rate)
+  p.add_argument("--recipe", default=None,
+                 help="a training record (e.g. models/weights/segnet.json): its architecture, "
+                      "data and optimisation settings become the defaults, so "
+                      "`--recipe models/weights/segnet.json` re-runs the shipped recipe")
+  known, _ = p.parse_known_args(argv)
+  if known.recipe is not None:
+    p.set_defaults(**recipe_defaults(json.loads(pathlib.Path(known.recipe).read_text())))
   return p.parse_args(argv)
+
+
+# Training-config fields the command line does not expose: a recipe must use their defaults.
+_FIXED_TRAIN_FIELDS = ("clip_norm", "class_weight_power", "class_weight_max")
+
+
+def recipe_defaults(recipe: dict[str, Any]) -> dict[str, Any]:
+  """Command-line defaults that reproduce a run from its JSON record (`segnet.json`).
+
+  Args:
+    recipe: `{"config": SegNetConfig dict, "record": {"seed", "data", "train_config", ...}}`.
+
+  Returns:
+    `{argparse dest: value}`.
+
+  Raises:
+    ValueError: the record lacks a field, or fixes a setting the command line cannot set to a
+      value other than this code's default.
+  """
+  try:
+    config = net.SegNetConfig.from_dict(recipe["config"])
+    record = recipe["record"]
+    data, tc = record["data"], record["train_config"]
+    defaults = {
+        "seed": record["seed"], "height": data["height"], "width": data["width"],
+        "num_train": data["train"]["num_images"], "num_eval": data["test"]["num_images"],
+        "shift": data["test"]["shift"],
+        "steps": tc["steps"], "batch_size": tc["batch_size"], "lr": tc["learning_rate"],
+        "warmup": tc["warmup_steps"], "weight_decay": tc["weight_decay"],
+        "color_strength": tc["color_strength"],
+        "eval_samples": record.get("eval_num_samples", 16),
+    }
+  except KeyError as e:
+    raise ValueError(f"the recipe lacks field {e}; pass a segnet.json written by this command")
+  # Augmentation fields added after the first records; absent means "off" (the old recipe).
+  defaults.update(blur_prob=tc.get("blur_prob", 0.0), blur_max_sigma=tc.get("blur_max_sigma", 1.5),
+                  noise_max=tc.get("noise_max", 0.02), zoom_max=tc.get("zoom_max", 1.0))
+  for name in _FIXED_TRAIN_FIELDS:
+    if name in tc and tc[name] != getattr(TrainConfig(), name):
+      raise ValueError(f"the recipe sets {name}={tc[name]}, which the command line cannot "
+                       f"set (this code uses {getattr(TrainConfig(), name)})")
+  defaults.update(
+      stem_width=config.stem_width, widths=",".join(map(str, config.widths)),
+      strides=",".join(map(str, config.strides)),
+      dilations=",".join(map(str, config.dilations)),
+      blocks_per_stage=config.blocks_per_stage, aspp_width=config.aspp_width,
+      aspp_rates=",".join(map(str, config.aspp_rates)), dropout=config.dropout_rate)
+  defaults["norm_groups"] = config.norm_groups
+  return defaults
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -470,7 +527,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       num_classes=len(class_names), stem_width=args.stem_width, widths=ints(args.widths),
       strides=ints(args.strides), dilations=ints(args.dilations),
       blocks_per_stage=args.blocks_per_stage, aspp_width=args.aspp_width,
-      aspp_rates=ints(args.aspp_rates), dropout_rate=args.dropout)
+      aspp_rates=ints(args.aspp_rates), dropout_rate=args.dropout,
+      norm_groups=args.norm_groups)
   cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
                     warmup_steps=args.warmup, weight_decay=args.weight_decay,
                     color_strength=args.color_strength, blur_prob=args.blur_prob,

@@ -1,10 +1,12 @@
 """Training pieces: a few steps lower the loss; class weights, augmentation, masked loss."""
 
 import functools
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from models import net, train
 
@@ -117,3 +119,29 @@ def test_random_zoom_keeps_labels_aligned_with_colour():
   same_i, same_l = train.random_zoom(jax.random.key(0), image, jnp.asarray(labels[0]), 1.0)
   np.testing.assert_allclose(np.asarray(same_i), np.asarray(image), atol=1e-6)
   np.testing.assert_array_equal(np.asarray(same_l), labels[0])
+
+
+def test_recipe_of_a_record_reproduces_its_settings(tmp_path):
+  config = net.tiny_config(7)
+  cfg = train.TrainConfig(steps=7, batch_size=3, learning_rate=1e-3, warmup_steps=2,
+                          blur_prob=0.25, zoom_max=1.2)
+  record = {"seed": 5, "eval_num_samples": 4, "train_config": cfg._asdict(),
+            "data": {"height": 24, "width": 32, "train": {"num_images": 9},
+                     "test": {"num_images": 2, "shift": 0.5}}}
+  path = tmp_path / "segnet.json"
+  path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
+  args = train.parse_args(["--recipe", str(path), "--steps", "3"])
+  assert args.steps == 3  # explicit flags still win
+  assert (args.seed, args.height, args.width, args.num_train, args.num_eval, args.shift) == (
+      5, 24, 32, 9, 2, 0.5)
+  assert (args.batch_size, args.lr, args.warmup, args.blur_prob, args.zoom_max) == (
+      3, 1e-3, 2, 0.25, 1.2)
+  assert (args.widths, args.strides, args.stem_width, args.aspp_rates, args.norm_groups) == (
+      "8", "2", 8, "2", 4)
+  # An old record without the newer augmentation fields means they were off.
+  del record["train_config"]["blur_prob"], record["train_config"]["zoom_max"]
+  path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
+  args = train.parse_args(["--recipe", str(path)])
+  assert (args.blur_prob, args.zoom_max) == (0.0, 1.0)
+  with pytest.raises(ValueError, match="lacks field"):
+    train.recipe_defaults({"config": config.to_dict(), "record": {}})
