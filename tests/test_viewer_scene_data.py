@@ -266,3 +266,24 @@ def test_view_without_viser_says_what_to_install(run_folder, capsys, monkeypatch
   assert "pip install 'jaxfusion[viewer]'" in err and err.count("\n") == 1
   assert cli.main(["view", str(root), "--port", "70000"]) == 2
   assert "--port" in capsys.readouterr().err
+
+
+def test_maps_from_jaxfusion_run_carry_poses_and_gt(tmp_path, capsys):
+  from jaxfusion import datasets, sources
+  seq = datasets.make_sequence("office", 0, num_frames=3, height=24, width=32)
+  k = len(seq.class_names)
+  for t in range(len(seq)):   # predictions: the GT labels, softened
+    probs = 0.2 / k + 0.8 * np.eye(k, dtype=np.float32)[np.maximum(seq.labels[t], 0)]
+    sources.save_prediction(tmp_path / "pred" / f"{t:06d}.npz", mean=probs)
+  out = tmp_path / "run"
+  assert cli.main(["run", "--data", "synthetic:office/0", "--frames", "3", "--height", "24",
+                   "--width", "32", "--rule", "bayes", "--predictions", str(tmp_path / "pred"),
+                   "--capacity", "16384", "--out", str(out)]) == 0
+  capsys.readouterr()
+  (m,) = sd.load_maps([str(out)])
+  assert m.sequence == seq.name and m.class_names == tuple(seq.class_names)
+  np.testing.assert_array_equal(m.poses, seq.T_world_cam)
+  assert m.camera == {"fx": seq.camera.fx, "fy": seq.camera.fy, "cx": seq.camera.cx,
+                      "cy": seq.camera.cy, "height": 24, "width": 32}
+  assert m.gt_labels is not None and np.mean(m.gt_labels >= 0) > 0.9
+  assert "correct" in sd.color_modes(m)
