@@ -1,9 +1,11 @@
 """Probability sources: every adapter yields (probs, var) that `fuse_frame` accepts end to end."""
 
+import hypothesis
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import strategies as st
 
 import jaxfusion
 from jaxfusion import sources
@@ -201,3 +203,83 @@ def test_precomputed_source_errors_on_missing_and_size_mismatch(tmp_path):
     source.predict(None, None, index=5)
   with pytest.raises(ValueError, match="pixels"):
     source.predict(None, np.zeros((H + 1, W, 3), np.uint8), index=0)
+
+
+# --- mc_moments: one pass, against a float64 two-pass reference ----------------------------------
+def two_pass_float64(samples):
+  x = np.asarray(samples, np.float64)
+  mean = x.mean(axis=0)
+  return mean, ((x - mean) ** 2).mean(axis=0)
+
+
+def assert_moments_match(samples, atol=1e-6):
+  mean, var = jaxfusion.mc_moments(samples)
+  want_mean, want_var = two_pass_float64(samples)
+  assert mean.dtype == var.dtype == jnp.float32
+  assert mean.shape == var.shape == np.shape(samples)[1:]
+  np.testing.assert_allclose(np.asarray(mean), want_mean, rtol=0, atol=atol)
+  np.testing.assert_allclose(np.asarray(var), want_var, rtol=0, atol=atol)
+  assert float(jnp.min(var)) >= 0.0
+
+
+@pytest.mark.parametrize("num", [1, 2, 3, 32, 33, 70])   # one group, a group + 1, three groups
+def test_mc_moments_one_hot_samples(num):
+  rng = np.random.default_rng(num)
+  labels = rng.integers(0, 5, (num, 3, 4))
+  samples = np.eye(5, dtype=np.float32)[labels]
+  samples[:, 0, 0] = np.eye(5, dtype=np.float32)[2]           # one pixel always one-hot on 2
+  assert_moments_match(samples)
+  _, var = jaxfusion.mc_moments(samples)
+  assert np.all(np.asarray(var)[0, 0] == 0.0)                 # constant samples: exactly 0
+
+
+@pytest.mark.parametrize("value", [0.0, 1e-30, 0.1, 1 / 3, 0.999999, 1.0])
+def test_mc_moments_constant_samples_have_exactly_zero_variance(value):
+  samples = np.full((37, 2, 3, 4), value, np.float32)
+  mean, var = jaxfusion.mc_moments(samples)
+  np.testing.assert_array_equal(np.asarray(mean), np.float32(value))
+  np.testing.assert_array_equal(np.asarray(var), 0.0)
+
+
+def test_mc_moments_hand_computed():
+  samples = np.array([[[[1.0, 0.0]]], [[[0.0, 1.0]]], [[[0.5, 0.5]]], [[[0.5, 0.5]]]],
+                     np.float32)                              # (M=4, 1, 1, K=2)
+  mean, var = jaxfusion.mc_moments(samples)
+  np.testing.assert_allclose(np.asarray(mean)[0, 0], [0.5, 0.5])
+  np.testing.assert_allclose(np.asarray(var)[0, 0], [0.125, 0.125])   # (.25 + .25 + 0 + 0) / 4
+
+
+def test_mc_moments_under_jit_and_vmap_and_rejects_bad_input():
+  rng = np.random.default_rng(0)
+  samples = rng.dirichlet(np.ones(3), (2, 5, 2, 3)).astype(np.float32)   # (B=2, M=5, 2, 3, 3)
+  batched = jax.jit(jax.vmap(jaxfusion.mc_moments))(samples)
+  for b in range(2):
+    want = two_pass_float64(samples[b])
+    for got, ref in zip(batched, want):
+      np.testing.assert_allclose(np.asarray(got[b]), ref, atol=1e-6)
+  with pytest.raises(ValueError, match="at least one sample"):
+    jaxfusion.mc_moments(np.zeros((0, 2, 2, 3), np.float32))
+  with pytest.raises(ValueError, match=r"\(M, H, W, K\)"):
+    jaxfusion.mc_moments(np.zeros((2, 2, 3), np.float32))
+  with pytest.raises(TypeError, match="float"):
+    jaxfusion.mc_moments(np.zeros((2, 2, 2, 3), np.int32))
+
+
+@hypothesis.settings(max_examples=40, deadline=None)
+@hypothesis.given(
+    num=st.integers(1, 40), k=st.integers(1, 4), seed=st.integers(0, 2**31 - 1),
+    kind=st.sampled_from(["dirichlet", "peaked", "one_hot_mix", "tiny"]))
+def test_mc_moments_property_equals_float64_two_pass(num, k, seed, kind):
+  rng = np.random.default_rng(seed)
+  shape = (num, 2, 3)
+  if kind == "dirichlet":
+    samples = rng.dirichlet(np.ones(k), shape)
+  elif kind == "peaked":          # near one-hot softmax outputs: large values, tiny spread
+    samples = rng.dirichlet(np.full(k, 0.05), shape)
+  elif kind == "one_hot_mix":     # one-hot samples mixed with a few soft ones
+    samples = np.eye(k)[rng.integers(0, k, shape)]
+    soft = rng.random(shape) < 0.2
+    samples[soft] = rng.dirichlet(np.ones(k), int(soft.sum()))
+  else:                           # values near the float32 underflow edge
+    samples = rng.random(shape + (k,)) * 1e-30
+  assert_moments_match(samples.astype(np.float32))
