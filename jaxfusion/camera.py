@@ -16,12 +16,46 @@ import numpy as np
 KEY_LIMIT = 2**30
 
 
-class Camera(NamedTuple):
-  """Pinhole intrinsics in pixels. A pytree: every field is a (traceable) scalar."""
+class _Intrinsics(NamedTuple):
   fx: float
   fy: float
   cx: float
   cy: float
+
+
+def _concrete_values(x):
+  """`x` as a float64 NumPy array when it is a concrete number or numeric array, else None
+  (tracers, and non-numeric placeholders such as a `vmap` axis spec's None)."""
+  if isinstance(x, jax.core.Tracer) or isinstance(x, (bool, np.bool_)):
+    return None
+  if isinstance(x, (int, float, np.number, np.ndarray, jax.Array)):
+    try:
+      return np.asarray(x, np.float64)
+    except (TypeError, ValueError):
+      return None
+  return None
+
+
+class Camera(_Intrinsics):
+  """Pinhole intrinsics in pixels. A pytree: every field is a (traceable) scalar.
+
+  Built directly, a Camera checks its concrete values: `fx` and `fy` (focal lengths in pixels)
+  must be finite and positive, `cx` and `cy` finite (ValueError otherwise). Tracers are not
+  checked, and neither are the Cameras that JAX rebuilds from leaves (`jax.tree.map`, gradients,
+  `vmap` outputs), which may legitimately hold other values.
+  """
+  __slots__ = ()
+
+  def __new__(cls, fx, fy, cx, cy):
+    for name, value in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
+      v = _concrete_values(value)
+      if v is None:
+        continue
+      if not np.all(np.isfinite(v)):
+        raise ValueError(f"camera.{name} must be finite; got {value}")
+      if name in ("fx", "fy") and not np.all(v > 0):
+        raise ValueError(f"camera.{name} (focal length in pixels) must be positive; got {value}")
+    return super().__new__(cls, fx, fy, cx, cy)
 
   @classmethod
   def from_matrix(cls, K) -> "Camera":
@@ -34,6 +68,13 @@ class Camera(NamedTuple):
   def matrix(self) -> np.ndarray:
     """The `(3, 3) float64` intrinsics matrix."""
     return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+jax.tree_util.register_pytree_with_keys(
+    Camera,
+    lambda c: (tuple((jax.tree_util.GetAttrKey(k), v) for k, v in zip(Camera._fields, c)), None),
+    lambda _, leaves: tuple.__new__(Camera, leaves),     # JAX's rebuilds are not checked
+    flatten_func=lambda c: (tuple(c), None))
 
 
 def backproject(depth: jax.Array, camera: Camera) -> jax.Array:
