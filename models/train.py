@@ -32,13 +32,13 @@ from tqdm import tqdm
 from . import checkpoint, evaluate, net
 
 
-NUM_TRAIN = 3200  # Training views rendered by default.
+NUM_TRAIN = 2400  # Training views rendered by default.
 
 
 class TrainConfig(NamedTuple):
   """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
 
-  steps: int = 1500
+  steps: int = 1200
   batch_size: int = 12
   learning_rate: float = 3e-3
   warmup_steps: int = 100
