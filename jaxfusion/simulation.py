@@ -712,7 +712,10 @@ def heatmap_figure(path: str, result: dict) -> None:
         text = f"{mean[yi, xi]:+.1f}" if kind else f"{mean[yi, xi]:.1f}"
         if kind and values.shape[-1] > 1:
           text += f"\n±{std[yi, xi]:.1f}"
-        ax.text(xi, yi, text, ha="center", va="center", fontsize=7)
+        shade = im.norm(mean[yi, xi])        # white text on the dark ends of the colour map
+        dark = shade < 0.35 if kind is None else abs(shade - 0.5) > 0.35
+        ax.text(xi, yi, text, ha="center", va="center", fontsize=7,
+                color="white" if dark else "black")
     ax.set_xticks(range(len(x)), [f"{v:g}" for v in x])
     ax.set_yticks(range(len(y)), [f"{v:g}" for v in y])
     ax.set_xlabel(_label(result["x_param"]))
@@ -720,8 +723,9 @@ def heatmap_figure(path: str, result: dict) -> None:
     ax.set_title(title, fontsize=10)
     fig.colorbar(im, ax=ax, shrink=0.8)
   fixed = ", ".join(f"{k} = {v:g}" for k, v in result["base"].items())
-  fig.suptitle(f"Simulated front end ({result['regions']} regions; {fixed}); "
-               f"{len(result['sequences'])} sequence(s) × {result['num_draws']} draw(s), "
+  spread = " (± s.d. over draws)" if result["num_draws"] > 1 else ""
+  fig.suptitle(f"Simulated front end: {result['regions']} regions; {fixed}\n"
+               f"{', '.join(result['sequences'])} × {result['num_draws']} draw(s){spread}, "
                f"β = {result['beta']:g}", fontsize=9)
   fig.tight_layout()
 
