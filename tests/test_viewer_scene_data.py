@@ -229,6 +229,9 @@ def test_bad_inputs_raise_one_clear_error(tmp_path, run_folder):
     sd.find_map_files([str(root / "maps" / "seqA_gt.npz")])
   with pytest.raises(ValueError, match="not a jaxfusion map"):
     sd.find_map_files([str(root / "results.md")])
+  np.save(tmp_path / "array.npy", np.zeros(3))
+  with pytest.raises(ValueError, match="not a jaxfusion map"):
+    sd.find_map_files([str(tmp_path / "array.npy")])
   (tmp_path / "empty").mkdir()
   with pytest.raises(ValueError, match="no jaxfusion map"):
     sd.find_map_files([str(tmp_path / "empty")])
@@ -266,6 +269,10 @@ def test_view_without_viser_says_what_to_install(run_folder, capsys, monkeypatch
   assert "pip install 'jaxfusion[viewer]'" in err and err.count("\n") == 1
   assert cli.main(["view", str(root), "--port", "70000"]) == 2
   assert "--port" in capsys.readouterr().err
+  for host in ("192.0.2.1",):   # not an address of this machine: one line, no endless wait
+    assert cli.main(["view", str(root), "--host", host]) == 2
+    err = capsys.readouterr().err
+    assert "--host" in err and err.count("\n") == 1
 
 
 def test_maps_from_jaxfusion_run_carry_poses_and_gt(tmp_path, capsys):

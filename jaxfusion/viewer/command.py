@@ -1,6 +1,22 @@
 """The `jaxfusion view` subcommand (imports viser only when it runs)."""
 
+import socket
+
 from jaxfusion.viewer import scene_data as sd
+
+
+def check_host(host: str) -> None:
+  """Raises ValueError (one line) unless this machine can listen on `host`."""
+  try:
+    family, kind, proto, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+  except (socket.gaierror, UnicodeError) as e:
+    raise ValueError(f"--host {host!r} is not an address of this machine ({e})") from None
+  with socket.socket(family, kind, proto) as s:
+    try:
+      s.bind(address)
+    except OSError as e:
+      raise ValueError(f"--host {host!r}: cannot listen on this address ({e.strerror})"
+                       ) from None
 
 
 def add_parser(subparsers) -> None:
@@ -31,6 +47,7 @@ def run(args) -> None:
     raise ValueError(f"--port must be in [0, 65535]; got {args.port}")
   if args.max_cubes < 0:
     raise ValueError(f"--max-cubes must be ≥ 0; got {args.max_cubes}")
+  check_host(args.host)
   try:
     import viser  # noqa: F401  (the optional dependency)
   except ImportError:

@@ -80,7 +80,7 @@ def is_map_file(path: str) -> bool:
   try:
     with np.load(path) as data:
       return "metadata" in data.files and "keys" in data.files
-  except (OSError, ValueError, AttributeError, EOFError):   # not an .npz / a bare .npy
+  except (OSError, ValueError, TypeError, AttributeError, EOFError):   # not .npz / a .npy
     return False
 
 
