@@ -354,8 +354,8 @@ def _fill(labels, instance_ids, depth, T_world_cam, camera, lead=()):
 _simulate_frame_jit = jax.jit(_simulate_frame, static_argnames=("num_classes", "regions"))
 
 
-def simulate_view_predictions(key: jax.Array, labels: jax.Array, instance_ids=None,
-                              frame_index=0, *, num_classes: int, depth=None,
+def simulate_view_predictions(key: jax.Array, labels: jax.Array, instance_ids, frame_index, *,
+                              num_classes: int, depth=None,
                               T_world_cam=None, camera: Optional[camera_lib.Camera] = None,
                               regions: str = "both", model: Optional[ErrorModel] = None,
                               **params) -> SimulatedView:
@@ -369,7 +369,8 @@ def simulate_view_predictions(key: jax.Array, labels: jax.Array, instance_ids=No
   Args:
     key: PRNG key of the sequence.
     labels: `(H, W) int` GT labels; outside [0, K): unlabelled (uniform, never wrong).
-    instance_ids: `(H, W) int` instance ids (> 0; ≤ 0: no object); needed for "objects"/"both".
+    instance_ids: `(H, W) int` instance ids (> 0; ≤ 0: no object), or None with
+      regions="patches".
     frame_index: `[] int` the view's index t in the sequence.
     num_classes: K ≥ 2.
     depth: `(H, W)` z-depth in metres (0: hole); needed for "patches"/"both".
@@ -425,7 +426,7 @@ def _simulate_sequence_jit(key, labels, instance_ids, depth, poses, camera, mode
       key, labels, instance_ids, frames, depth, poses, camera, model)
 
 
-def simulate_sequence(key: jax.Array, labels, instance_ids=None, *, num_classes: int,
+def simulate_sequence(key: jax.Array, labels, instance_ids, *, num_classes: int,
                       depth=None, T_world_cam=None, camera: Optional[camera_lib.Camera] = None,
                       regions: str = "both", model: Optional[ErrorModel] = None,
                       **params) -> SimulatedView:
@@ -435,7 +436,7 @@ def simulate_sequence(key: jax.Array, labels, instance_ids=None, *, num_classes:
   Args:
     key: PRNG key of the sequence.
     labels: `(T, H, W) int` GT labels.
-    instance_ids: `(T, H, W) int` instance ids.
+    instance_ids: `(T, H, W) int` instance ids, or None with regions="patches".
     num_classes: K.
     depth: `(T, H, W)` z-depth.
     T_world_cam: `(T, 4, 4)` poses.
