@@ -470,7 +470,18 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
   conf = f"{100 * config.confidence:g} %"
   head = "| Method | " + " | ".join(f"shift {s}" for s in shifts) + " |"
   rule = "|---|" + "---|" * len(shifts)
-  parts = [f"# Fusion study\n\n{note}"]
+  parts = [f"# Fusion study\n\n{note}\n\n"
+           "How to read: intervals are percentile bootstrap intervals over sequences (resampled "
+           "with replacement; confusion matrices summed over the resample, then mIoU / accuracy), "
+           "differences are paired (both methods on the same resamples). A pixel observation "
+           "votes for the argmax of the MC mean and is right when that is its voxel's GT label. "
+           "A scored GT voxel is *mostly right* when the right class has the most votes, "
+           "*outvoted right* when some votes are right but another class has as many or more, "
+           "*never right* when no vote is right; a rule *recovers* an outvoted-right voxel when "
+           "its map labels it correctly. The *oracle* fuses only the right observations with "
+           "the Bayesian rule (never-right voxels keep the Bayesian label): the bound for rules "
+           "that weight observations. α = −log var of the predicted class (the D rules' "
+           "weight)."]
   for metric, title in (("miou", "mIoU"), ("accuracy", "Accuracy")):
     lines = [f"## {title} (%) with {conf} bootstrap intervals over sequences", "", head, rule]
     for m in first["methods"]:
@@ -558,7 +569,7 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
           f"{config.num_samples}, β = {config.beta}, {config.voxel_size} m voxels, pixel "
           f"aggregation: {config.aggregate}; layout seeds {list(config.seeds)}; "
           f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
-          f"{timing['total_s']:.0f} s in all.")
+          f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
   table = format_tables(summary, config, note)
   paths = {n: os.path.join(out_dir, n) for n in (
       "study.md", "study.csv", "study.json", "miou_vs_shift.png", "differences_vs_shift.png",
@@ -581,9 +592,11 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
   figures.bands_vs_shift(paths["miou_vs_shift.png"],
                          shifts, {"mIoU": curves("methods", "miou"),
                                   "accuracy": curves("methods", "accuracy")}, ylabel="%")
+  rule_diffs = {m: {n: c for n, c in curves("differences", m).items()
+                    if not n.startswith(display(ORACLE))} for m in ("miou", "accuracy")}
   figures.bands_vs_shift(paths["differences_vs_shift.png"], shifts,
-                         {"mIoU difference": curves("differences", "miou"),
-                          "accuracy difference": curves("differences", "accuracy")},
+                         {"mIoU difference": rule_diffs["miou"],
+                          "accuracy difference": rule_diffs["accuracy"]},
                          ylabel="points", zero_line=True)
   shares = np.array([[summary[s]["headroom"][c]["estimate"] for c in HEADROOM]
                      for s in summary], float)
@@ -617,36 +630,41 @@ def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = N
   """
   from jaxfusion import datasets
   config.validate()
-  start = time.perf_counter()
+  start, start_cpu = time.perf_counter(), time.process_time()
   os.makedirs(out_dir, exist_ok=True)
   cache_dir = cache_dir or os.path.join(out_dir, "cache")
   front_end = front_end if front_end is not None else experiments.FrontEnd(checkpoint)
-  timing = {"render_s": 0.0, "front_end_s": 0.0, "fusion_s": 0.0}
+  timing = {name: 0.0 for name in ("render_s", "front_end_s", "fusion_s", "render_cpu_s",
+                                    "front_end_cpu_s", "fusion_cpu_s")}
   per_sequence = []
   grid = [(u, s) for u in config.units for s in config.shifts]
   for (seed, env, traj), shift in tqdm(grid, desc="study"):
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     seq = datasets.make_sequence(env, traj, domain="test", num_frames=config.num_frames,
                                  height=config.height, width=config.width, seed=seed,
                                  shift=float(shift))
     gt = datasets.gt_voxel_labels(seq, voxel_size=config.voxel_size, capacity=config.capacity)
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     preds = experiments.cached_predictions(front_end, seq, config.experiment_config(seed, shift),
                                            cache_dir)
-    t2 = time.perf_counter()
+    t2, c2 = time.perf_counter(), time.process_time()
     result = analyze_sequence(seq, preds, gt, config)
-    t3 = time.perf_counter()
-    timing["render_s"] += t1 - t0
-    timing["front_end_s"] += t2 - t1
-    timing["fusion_s"] += t3 - t2
+    t3, c3 = time.perf_counter(), time.process_time()
+    for name, wall, cpu in (("render", t1 - t0, c1 - c0), ("front_end", t2 - t1, c2 - c1),
+                            ("fusion", t3 - t2, c3 - c2)):
+      timing[f"{name}_s"] += wall
+      timing[f"{name}_cpu_s"] += cpu
     result.update(unit=(int(seed), env, int(traj)), shift=float(shift),
-                  sequence=f"{seq.name}_s{seed}_shift{float(shift):g}")
+                  sequence=f"{seq.name}_s{seed}_shift{float(shift):g}",
+                  seconds={"wall": t3 - t0, "cpu": c3 - c0})
     per_sequence.append(result)
   summary = summarize(per_sequence, config)
   timing["total_s"] = time.perf_counter() - start
+  timing["total_cpu_s"] = time.process_time() - start_cpu
   files = write_outputs(out_dir, summary, per_sequence, config, model_id=front_end.model_id,
                         timing=timing)
   timing["total_s"] = time.perf_counter() - start
+  timing["total_cpu_s"] = time.process_time() - start_cpu
   return {"summary": summary, "table": format_tables(summary, config), "files": files,
           "timing": timing, "sequences": per_sequence}
 
@@ -698,5 +716,6 @@ def cmd_study(args) -> dict:
   print(f"wrote {len(out['files'])} files under {args.out}/ (study.md/.csv/.json, "
         f"miou_vs_shift.png, differences_vs_shift.png, headroom.png, alpha_hist.png) in "
         f"{t['total_s']:.0f} s (render + GT {t['render_s']:.0f} s, front end "
-        f"{t['front_end_s']:.0f} s, fusion and counts {t['fusion_s']:.0f} s)")
+        f"{t['front_end_s']:.0f} s, fusion and counts {t['fusion_s']:.0f} s; CPU time "
+        f"{t['total_cpu_s']:.0f} s)")
   return out
