@@ -304,6 +304,14 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     `pixels` (right and wrong observation counts), `matched`/`map_only`/`gt_only` (Bayesian
     map vs GT).
   """
+  missing = [k for k in ("det", "mean", "var") if k not in predictions]
+  if missing:
+    raise ValueError(f"predictions need 'det', 'mean' and 'var'; missing {missing}")
+  shape = np.shape(sequence.depth)
+  for k in ("det", "mean", "var"):
+    if np.ndim(predictions[k]) != 4 or np.shape(predictions[k])[:3] != shape:
+      raise ValueError(f"predictions[{k!r}] must be (T, H, W, K) with (T, H, W) = {shape}; got "
+                       f"{np.shape(predictions[k])}")
   num_classes = predictions["mean"].shape[-1]
   gt_coords = np.asarray(gt["coords"])
   gt_labels = np.asarray(gt["labels"], np.int64)

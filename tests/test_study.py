@@ -216,3 +216,13 @@ def test_cli_study_help_and_bad_input(capsys):
   assert "shifts must lie in [0, 1]" in err and "Traceback" not in err
   with pytest.raises(ValueError, match="bayes"):
     study.StudyConfig(rules=("robust_dr",)).validate()
+
+
+def test_analyze_sequence_rejects_mismatched_predictions():
+  seq, gt, _, _ = _plane_scene(np.random.default_rng(0))
+  probs = np.full(seq.depth.shape + (K,), 1.0 / K, np.float32)
+  config = study.StudyConfig(height=H, width=W, capacity=CAPACITY)
+  with pytest.raises(ValueError, match="missing"):
+    study.analyze_sequence(seq, {"det": probs, "mean": probs}, gt, config)
+  with pytest.raises(ValueError, match=r"\(T, H, W, K\)"):
+    study.analyze_sequence(seq, {"det": probs, "mean": probs[:, :-1], "var": probs}, gt, config)
