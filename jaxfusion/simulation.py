@@ -30,9 +30,9 @@ the frame index t and the frame's GT):
    of regions is needed.
 3. **Errors.** A region is wrong in view t iff `z^mask_{r,t} < Φ⁻¹(q)`, with q = e =
    `error_rate` for one kind of region and q = 1 − √(1 − e) for "both" (a pixel is wrong when its
-   object or its patch is). Hence `P(pixel wrong) = e` exactly, for every pixel with a label
-   (and a valid depth, when patches are used), and the masks of larger e contain those of
-   smaller e. A wrong pixel favours the class `f = (y + 1 + ⌊Φ(z^class_{r,t}) · (K − 1)⌋) mod K`
+   object or its patch is). Hence `P(pixel wrong) = e` exactly for every labelled pixel that has
+   a region of each kind in use (a pixel with only one of the two, under "both": q), and the
+   masks of larger e contain those of smaller e. A wrong pixel favours the class `f = (y + 1 + ⌊Φ(z^class_{r,t}) · (K − 1)⌋) mod K`
    (uniform over the K − 1 wrong classes, the same in every view when ρ = 1; for "both", the
    object's latent when the object is wrong); a right pixel favours f = y.
 4. **Mean.** `p̄_f = c` (`confidence`) on right pixels, `c_e` (`error_confidence`) on wrong
@@ -824,7 +824,8 @@ def add_simulate_sweep_parser(subparsers) -> argparse.ArgumentParser:
                   "oracle on a grid of two of its parameters, and writes heatmap.png, "
                   "results.csv and results.json.")
   parser.add_argument("--quick", action="store_true",
-                      help="a 3×3 grid on one short, small sequence (well under a minute)")
+                      help="a 3×3 grid on one short, small sequence, one draw (about 30 s of "
+                           "CPU, plus rendering)")
   parser.add_argument("--out", default="outputs/simulate_sweep", help="output folder")
   parser.add_argument("--x", default="cross_view_correlation", choices=SWEEP_PARAMS)
   parser.add_argument("--y", default="variance_separation", choices=SWEEP_PARAMS)

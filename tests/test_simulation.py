@@ -97,12 +97,20 @@ def draws(scene_dict, model, regions, num_draws=200, seed=0):
 
 
 # --- the error mask ---------------------------------------------------------------------------
+def _grid_dict(num_frames=2):
+  labels, inst = grid_scene(num_frames)
+  return {"labels": labels, "instances": inst, "depth": np.zeros(labels.shape, np.float32),
+          "T_world_cam": np.tile(np.eye(4, dtype=np.float32), (num_frames, 1, 1))}
+
+
 @pytest.mark.parametrize("regions", sim.REGIONS)
 @pytest.mark.parametrize("rate", [0.15, 0.5])
 def test_error_rate_matches_on_average(scene, regions, rate):
   model = sim.error_model(error_rate=rate, cross_view_correlation=0.6, patch_size=0.3)
+  if regions == "objects":    # the image-grid objects of the correlation tests (one compile)
+    scene = _grid_dict()
   view = draws(scene, model, regions)
-  valid = (scene["labels"] >= 0) & (scene["depth"] > 0)
+  valid = (scene["labels"] >= 0) & ((scene["depth"] > 0) | (regions == "objects"))
   per_draw = np.asarray(view.wrong)[:, valid].mean(axis=1)      # (D,)
   se = per_draw.std() / math.sqrt(len(per_draw))
   assert abs(per_draw.mean() - rate) < 4 * se + 1e-3, (per_draw.mean(), se)
@@ -117,11 +125,8 @@ def test_error_rate_edges(scene):
 
 
 def _object_masks(rho, num_draws=200):
-  labels, inst = grid_scene()
   model = sim.error_model(error_rate=0.3, cross_view_correlation=rho)
-  d = {"labels": labels, "instances": inst, "depth": np.zeros(labels.shape, np.float32),
-       "T_world_cam": np.tile(np.eye(4, dtype=np.float32), (labels.shape[0], 1, 1))}
-  view = draws(d, model, "objects", num_draws=num_draws)
+  view = draws(_grid_dict(), model, "objects", num_draws=num_draws)
   wrong = np.asarray(view.wrong)[:, :, ::4, ::4]    # one pixel per object: (D, 2, 6, 8)
   fav = np.asarray(view.favoured)[:, :, ::4, ::4]
   return wrong[:, 0].reshape(-1), wrong[:, 1].reshape(-1), fav, np.asarray(view.wrong)
@@ -199,7 +204,7 @@ def test_moments_against_numpy(scene):
   np.testing.assert_allclose(np.asarray(view.var), var, rtol=1e-5, atol=1e-9)
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=8, deadline=None)
 @given(rate=st.floats(0, 1), conf=st.floats(0.25, 0.99), conf_e=st.floats(0.25, 0.99),
        rho=st.floats(0, 1), noise=st.floats(0, 3), frac=st.floats(0, 0.98),
        seed=st.integers(0, 2**31 - 1))
@@ -329,12 +334,12 @@ def test_sweep_rule_stacks_equal_the_named_rules():
 def tiny_sweep(scene):
   return sim.sweep_grid([scene], x_param="cross_view_correlation", x_values=[0.0, 1.0],
                         y_param="error_rate", y_values=[0.0, 0.4], voxel_size=VOXEL,
-                        base={"alpha_noise": 0.5}, num_draws=2, progress=False)
+                        base={"alpha_noise": 0.5}, num_draws=1, progress=False)
 
 
 def test_tiny_sweep(tiny_sweep):
   out = tiny_sweep
-  assert out["miou"].shape == (2, 2, 2, len(sim.SWEEP_RULES))
+  assert out["miou"].shape == (2, 2, 1, len(sim.SWEEP_RULES))
   acc = out["accuracy"]
   # No errors: every rule maps every voxel right.
   assert np.all(acc[0] >= 0.99), acc[0]
