@@ -10,8 +10,8 @@ such a net from the ground truth, with four knobs that decide what a fusion rule
 often a region is wrong, how confident the errors are, how well the variance flags them, and how
 correlated the errors of one region are across views.
 
-Generative model (one sequence, PRNG key κ; everything below is a deterministic function of κ,
-the frame index t and the frame's GT):
+Generative model (one sequence and its PRNG key; everything below is a deterministic function of
+the key, the frame index t and the frame's GT):
 
 1. **Regions.** A pixel with GT label y ∈ [0, K) belongs to up to two *regions*, both fixed in
    the world so that "the same region" is defined across views:
@@ -32,9 +32,10 @@ the frame index t and the frame's GT):
    `error_rate` for one kind of region and q = 1 − √(1 − e) for "both" (a pixel is wrong when its
    object or its patch is). Hence `P(pixel wrong) = e` exactly for every labelled pixel that has
    a region of each kind in use (a pixel with only one of the two, under "both": q), and the
-   masks of larger e contain those of smaller e. A wrong pixel favours the class `f = (y + 1 + ⌊Φ(z^class_{r,t}) · (K − 1)⌋) mod K`
-   (uniform over the K − 1 wrong classes, the same in every view when ρ = 1; for "both", the
-   object's latent when the object is wrong); a right pixel favours f = y.
+   masks of larger e contain those of smaller e. A wrong pixel favours the class
+   `f = (y + 1 + ⌊Φ(z^class_{r,t}) · (K − 1)⌋) mod K` (uniform over the K − 1 wrong classes,
+   the same in every view when ρ = 1; for "both", the object's latent when the object is
+   wrong); a right pixel favours f = y.
 4. **Mean.** `p̄_f = c` (`confidence`) on right pixels, `c_e` (`error_confidence`) on wrong
    ones; every other class gets `(1 − p̄_f) / (K − 1)`. Pixels whose label is outside [0, K) get
    the uniform distribution and are never wrong.
@@ -61,7 +62,6 @@ import csv
 import functools
 import io as _io
 import json
-import math
 import os
 import time
 from typing import NamedTuple, Optional, Sequence
@@ -173,8 +173,9 @@ def _check_model(model: ErrorModel, num_classes: Optional[int]) -> None:
       formula = "alpha_right" if side == "right" else "alpha_right − variance_separation"
       raise ValueError(
           f"the mean α on {side} pixels ({formula} = {np.round(mean_alpha, 3).tolist()}) is "
-          f"below −log(c (1 − c)) = {np.round(bound, 3).tolist()} for {name} = {c.tolist()}: no distribution with that "
-          "mean has so high a variance; lower the separation or raise alpha_right")
+          f"below −log(c (1 − c)) = {np.round(bound, 3).tolist()} for {name} = {c.tolist()}: "
+          "no distribution with that mean has so high a variance; lower the separation or "
+          "raise alpha_right")
 
 
 def error_model(*, error_rate=0.2, error_confidence=0.8, confidence=0.8,

@@ -83,8 +83,10 @@ def _draws(seed, labels, instances, depth, poses, model, *, regions, num_draws):
   keys = jax.random.split(jax.random.PRNGKey(seed), num_draws)
   camera = jf.Camera(*(jnp.float32(c) for c in CAM))
 
+  frame = functools.partial(sim._simulate_frame,  # pylint: disable=protected-access
+                            num_classes=K, regions=regions)
+
   def one(key):
-    frame = functools.partial(sim._simulate_frame, num_classes=K, regions=regions)  # pylint: disable=protected-access
     return jax.vmap(frame, in_axes=(None, 0, 0, 0, 0, 0, None, None))(
         key, labels, instances, jnp.arange(labels.shape[0]), depth, poses, camera, model)
 
