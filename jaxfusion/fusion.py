@@ -315,7 +315,7 @@ def under_transformation(*trees) -> bool:
   return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
 
 
-def _check_inputs(state, frame, camera, rule, *, batch_dims):
+def _check_inputs(state, frame, camera, rule, *, batch_dims, sample=False):
   if not isinstance(state, MapState):
     raise TypeError(f"state must be a MapState from init_map; got {type(state).__name__}")
   if not isinstance(frame, Frame):
@@ -323,7 +323,7 @@ def _check_inputs(state, frame, camera, rule, *, batch_dims):
   validation.check_rule_matches_map(state, rule)
   validation.check_camera(camera)
   validation.check_frame(frame, num_classes=state.num_classes, requires_var=rule.requires_var,
-                         rule_name=rule.name, batch_dims=batch_dims)
+                         rule_name=rule.name, batch_dims=batch_dims, sample=sample)
 
 
 def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
@@ -336,6 +336,11 @@ def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
   Every valid pixel is back-projected, pixels are grouped per voxel, and the rule's update is
   applied once per touched voxel with the frame's reduced observation (SPEC.md's Σ_j). Voxels
   that cannot be placed because the map is full are dropped and counted in `num_dropped`.
+
+  Input checks cost microseconds: shapes, dtypes and the pose are checked in full, the signs of
+  `probs` and `var` on a strided sample of pixels (`validation.SAMPLED_PIXELS`), which catches
+  logits and log-probabilities; `fuse_sequence` checks every value. The engine reads
+  probabilities as `max(p, 0)` and skips pixels with non-finite values either way.
 
   Args:
     state: the map (from `init_map` with the same rule). Do not use it after this call.
@@ -351,7 +356,7 @@ def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
     >>> state = jaxfusion.init_map(capacity=2**16, num_classes=7, rule=rule)
     >>> state = jaxfusion.fuse_frame(state, jaxfusion.Frame(depth, T, mean, var), cam, rule)
   """
-  _check_inputs(state, frame, camera, rule, batch_dims=0)
+  _check_inputs(state, frame, camera, rule, batch_dims=0, sample=True)
   if under_transformation(state, frame, camera, rule):
     return _fuse_frame_keep(state, frame, camera, rule)
   return _fuse_frame_jit(state, frame, camera, rule)

@@ -3,8 +3,17 @@
 Shape and dtype checks run at trace time, so they also guard calls made under `jit`, `vmap` or
 `grad`. Value checks (finite rigid pose, positive intrinsics, non-negative probabilities) need
 concrete data and run only when the inputs are not tracers.
+
+The sign checks of probabilities and variances read data, so their cost is chosen per entry
+point: `fuse_frame` (called once per frame) checks a fixed strided sample of at most
+`SAMPLED_PIXELS` pixels — microseconds at any image size, and enough to catch the real mistakes
+(log-probabilities, logits, signed or centred arrays) with a clear error — while the sequence
+and batch entry points check every value once per call. An isolated negative entry that the
+sample misses is harmless: the engine reads probabilities as `max(p, 0)` and clips variances to
+[0, 0.25].
 """
 
+import functools
 import math
 
 import jax
@@ -15,6 +24,9 @@ from jaxfusion.camera import Camera
 from jaxfusion.rules import base as rules_base
 
 _RIGID_TOL = 1e-3
+_VAR_TOL = -1e-6
+# Pixels whose class values the sampled sign check of `check_frame(..., sample=True)` reads.
+SAMPLED_PIXELS = 4096
 
 
 def _is_concrete(*xs) -> bool:
@@ -62,9 +74,43 @@ def check_pose_values(T: np.ndarray, name: str = "T_world_cam") -> None:
     raise ValueError(f"{name} must have last row [0, 0, 0, 1]")
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _strided_mins(arrays, strides):
+  return jnp.stack([jnp.min(x.reshape(-1, x.shape[-1])[::s]) for x, s in zip(arrays, strides)])
+
+
+def _min_values(arrays, sample: bool) -> list:
+  """Smallest entry of each `(..., K)` array: of all of it, or (`sample`) of every s-th pixel, at
+  most `SAMPLED_PIXELS` pixels, the first one included (a view for NumPy arrays, one small
+  jitted gather for all device arrays together)."""
+  out, on_device = [], []
+  for i, x in enumerate(arrays):
+    pixels = math.prod(np.shape(x)[:-1])
+    if pixels == 0 or np.shape(x)[-1] == 0:
+      out.append(math.inf)
+      continue
+    stride = max(1, -(-pixels // SAMPLED_PIXELS)) if sample else 1
+    if isinstance(x, jax.Array):
+      out.append(None)
+      on_device.append((i, x, stride))
+      continue
+    x = np.asarray(x)
+    out.append(float(np.min(x.reshape(-1, x.shape[-1])[::stride])))
+  if on_device:
+    mins = np.asarray(_strided_mins(tuple(x for _, x, _ in on_device),
+                                    tuple(s for _, _, s in on_device)))
+    for (i, _, _), m in zip(on_device, mins):
+      out[i] = float(m)
+  return out
+
+
 def check_frame(frame, *, num_classes: int, requires_var: bool, rule_name: str,
-                batch_dims: int = 0) -> None:
-  """Checks one Frame (`batch_dims=0`) or a stack of frames (`batch_dims=1`)."""
+                batch_dims: int = 0, sample: bool = False) -> None:
+  """Checks one Frame (`batch_dims=0`) or a stack of frames (`batch_dims=1`).
+
+  Shapes, dtypes and poses are always checked in full; with `sample=True` the signs of `probs`
+  and `var` are checked on a strided sample of pixels (see the module docstring), else on all.
+  """
   lead = "(T, " if batch_dims else "("
   depth, T, probs, var = frame.depth, frame.T_world_cam, frame.probs, frame.var
   if np.ndim(depth) != 2 + batch_dims:
@@ -94,9 +140,12 @@ def check_frame(frame, *, num_classes: int, requires_var: bool, rule_name: str,
     raise ValueError(f"depth must have at least one pixel; got shape {np.shape(depth)}")
   if _is_concrete(T):
     check_pose_values(T)
-  if _is_concrete(probs) and bool(np.any(np.asarray(probs) < 0)):
-    raise ValueError("probs must be non-negative class probabilities; got negative values")
-  if var is not None and _is_concrete(var) and bool(np.any(np.asarray(var) < -1e-6)):
+  checked = [x for x in (probs, var) if x is not None and _is_concrete(x)]
+  mins = dict(zip(map(id, checked), _min_values(checked, sample)))
+  if id(probs) in mins and mins[id(probs)] < 0:
+    raise ValueError("probs must be non-negative class probabilities (softmax outputs, not "
+                     "logits or log-probabilities); got negative values")
+  if var is not None and id(var) in mins and mins[id(var)] < _VAR_TOL:
     raise ValueError("var must be non-negative; got negative variances")
 
 

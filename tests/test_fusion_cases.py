@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 import jaxfusion as jf
+from jaxfusion import validation
 from tests import engine_helpers as h
 
 # A 2×2 image at 0.9 m depth: its points lie within ±0.05 m of (0.5, 0.5, 0.9), one 1 m voxel.
@@ -227,6 +228,45 @@ def test_bad_frames_are_refused_clearly(change, error, match):
   state, frame, rule = good()
   with pytest.raises(error, match=match):
     jf.fuse_frame(state, change(frame), CAM, rule)
+
+
+def test_logits_and_negative_variances_are_refused_from_host_and_device_arrays():
+  rng = np.random.default_rng(0)
+  rule = jf.rules.robust()
+  probs = rng.dirichlet(np.ones(3), (48, 64)).astype(np.float32)
+  depth = np.ones((48, 64), np.float32)
+  var = np.full_like(probs, 0.01)
+  state = jf.init_map(capacity=2**12, num_classes=3, voxel_size=0.5, rule=rule)
+  for to in (np.asarray, jnp.asarray):
+    with pytest.raises(ValueError, match="log-probabilities"):
+      jf.fuse_frame(state, jf.Frame(to(depth), POSE, to(np.log(probs)), to(var)), CAM, rule)
+    with pytest.raises(ValueError, match="negative variances"):
+      jf.fuse_frame(state, jf.Frame(to(depth), POSE, to(probs), to(var - 0.02)), CAM, rule)
+
+
+def test_sampled_sign_check_of_fuse_frame_and_full_check_of_fuse_sequence():
+  # 64×96 pixels: ceil(6144 / SAMPLED_PIXELS) = 2, fuse_frame reads every other pixel from 0.
+  assert validation.SAMPLED_PIXELS == 4096
+  rule = jf.rules.bayes()
+  probs = np.full((64, 96, 3), 1 / 3, np.float32)
+  depth = np.ones((64, 96), np.float32)
+  unsampled = probs.copy()
+  unsampled[0, 1] = [-0.25, 0.625, 0.625]          # pixel 1: not in the sample
+  sampled = probs.copy()
+  sampled[0, 2] = [-0.25, 0.625, 0.625]            # pixel 2: in the sample
+  fresh = lambda: jf.init_map(capacity=2**12, num_classes=3, voxel_size=0.5, rule=rule)
+  with pytest.raises(ValueError, match="non-negative"):
+    jf.fuse_frame(fresh(), jf.Frame(depth, POSE, sampled), CAM, rule)
+  # A missed negative entry is read as max(p, 0), as the engine always does.
+  clamped = unsampled.copy()
+  clamped[0, 1, 0] = 0.0
+  got = jf.read_map(jf.fuse_frame(fresh(), jf.Frame(depth, POSE, unsampled), CAM, rule))
+  want = jf.read_map(jf.fuse_frame(fresh(), jf.Frame(depth, POSE, clamped), CAM, rule))
+  np.testing.assert_array_equal(got["posterior"], want["posterior"])
+  # Sequences check every value, once per call.
+  stack = jf.Frame(depth[None], POSE[None], unsampled[None])
+  with pytest.raises(ValueError, match="non-negative"):
+    jf.fuse_sequence(fresh(), stack, CAM, rule)
 
 
 def test_bad_camera_rule_and_map_arguments():
