@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from jaxfusion.camera import Camera
-from jaxfusion.datasets import raycast, sensing, sensor, synthetic, trajectories
+from jaxfusion.datasets import appearance, raycast, sensing, sensor, synthetic, trajectories
+from jaxfusion.datasets import primitives as P
 from jaxfusion.datasets.sensing import CameraState, SensingConfig
 
 SIZE = dict(height=24, width=32)  # the size and sequence of test_datasets_synthetic: shared compiles
@@ -339,3 +340,28 @@ def test_white_balance_scales_channels():
                                 _state(exposure=0.8, wb=(1.1, 1.0, 0.9)), config)
   np.testing.assert_allclose(np.asarray(rgb), np.clip(img * 0.8 * [1.1, 1.0, 0.9], 0, 1),
                              rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------- texture filter
+
+
+def test_pixel_footprint_by_hand():
+  fp = sensing.pixel_footprint(np.array([2.0, 4.0, 4.0]), np.array([1.0, 1.0, 0.25]), 100.0, 0.5)
+  np.testing.assert_allclose(np.asarray(fp), [0.01, 0.02, 0.04], rtol=1e-6)
+
+
+@pytest.mark.parametrize("texture_id", [P.STRIPES, P.CHECKER, P.WOOD, P.NOISE, P.SCREEN])
+def test_texture_detail_fades_with_the_footprint(texture_id):
+  n = 4000
+  rng = np.random.default_rng(texture_id)
+  p_local = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+  ids = np.full(n, texture_id, np.int32)
+  scale = np.full(n, 8.0, np.float32)
+  color, color2 = np.tile([0.8, 0.2, 0.1], (n, 1)), np.tile([0.1, 0.3, 0.9], (n, 1))
+  args = (p_local, ids, scale, color.astype(np.float32), color2.astype(np.float32))
+  point = np.asarray(appearance.texture(*args))
+  np.testing.assert_allclose(np.asarray(appearance.texture(*args, footprint=np.zeros(n))), point,
+                             atol=1e-6)
+  spread = [np.asarray(appearance.texture(*args, footprint=np.full(n, fp))).std(0).sum()
+            for fp in (0.0, 0.01, 0.02, 0.05, 1.0)]
+  assert np.all(np.diff(spread) < 0) and spread[-1] < 1e-3 * spread[0]  # float32 rounding

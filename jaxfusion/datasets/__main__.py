@@ -1,7 +1,8 @@
-"""Command line for the datasets: `python -m jaxfusion.datasets {list,render,save,show}`.
+"""Command line for the datasets: `python -m jaxfusion.datasets {list,render,save,show,bench}`.
 
 Examples:
   python -m jaxfusion.datasets list
+  python -m jaxfusion.datasets bench --height 120 --width 160
   python -m jaxfusion.datasets render --env office --trajectory 0 --frame 0 --out frame.png
   python -m jaxfusion.datasets save --env house --trajectory 2 --out seqs/house_2
   python -m jaxfusion.datasets show --path seqs/house_2 --frame 3 --out frame.png
@@ -9,9 +10,11 @@ Examples:
 
 import argparse
 import sys
+import time
 
 from jaxfusion.datasets import preview, synthetic
 from jaxfusion.datasets.classes import CLASS_COLORS, SCANNET_CLASS_NAMES, SCANNET_COLORS
+from jaxfusion.datasets.sensing import SensingConfig
 from jaxfusion.datasets.sequence import RGBDSequence
 
 
@@ -25,6 +28,8 @@ def _add_synthetic_args(p: argparse.ArgumentParser) -> None:
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--shift", type=float, default=1.0)
   p.add_argument("--no-realism", action="store_true", help="exact depth and colour")
+  p.add_argument("--no-sensing", action="store_true",
+                 help="plain sensor model instead of the view-dependent camera model")
 
 
 def _colors_for(seq: RGBDSequence):
@@ -48,6 +53,8 @@ def main(argv=None) -> int:
   show.add_argument("--path", required=True)
   show.add_argument("--frame", type=int, default=0)
   show.add_argument("--out", default="frame.png")
+  bench = sub.add_parser("bench", help="time rendering with and without the camera model")
+  _add_synthetic_args(bench)
   args = parser.parse_args(argv)
 
   if args.command == "list":
@@ -59,6 +66,20 @@ def main(argv=None) -> int:
     preview.render_preview(seq[args.frame], args.out, class_colors=_colors_for(seq))
     print(f"wrote {args.out} (frame {args.frame} of {seq!r})")
     return 0
+  sensing = SensingConfig.off() if getattr(args, "no_sensing", False) else SensingConfig()
+  if args.command == "bench":
+    for name, config in (("sensing off", SensingConfig.off()), ("sensing on", SensingConfig())):
+      kwargs = dict(domain=args.domain, num_frames=args.num_frames, height=args.height,
+                    width=args.width, seed=args.seed, shift=args.shift, sensing=config)
+      synthetic.make_sequence(args.env, args.trajectory, **kwargs)  # compile
+      wall, cpu = time.perf_counter(), time.process_time()
+      synthetic.make_sequence(args.env, args.trajectory, **kwargs)
+      wall = 1e3 * (time.perf_counter() - wall) / args.num_frames
+      cpu = 1e3 * (time.process_time() - cpu) / args.num_frames
+      print(f"{name}: {wall:.1f} ms/frame wall, {cpu:.1f} ms/frame CPU (all threads) "
+            f"({args.env} trajectory {args.trajectory}, {args.num_frames} frames at "
+            f"{args.width}x{args.height})", flush=True)
+    return 0
   if args.command == "render":
     if not 0 <= args.frame < args.num_frames:
       parser.error(f"--frame must lie in [0, {args.num_frames})")
@@ -66,14 +87,16 @@ def main(argv=None) -> int:
     pose = synthetic.trajectories.trajectory(world.layout.room, args.trajectory,
                                              args.num_frames)[args.frame]
     frame = synthetic.render(world, pose, synthetic.default_camera(args.height, args.width),
-                             height=args.height, width=args.width, realism=not args.no_realism)
+                             height=args.height, width=args.width, realism=not args.no_realism,
+                             sensing=sensing)
     preview.render_preview(frame, args.out)
     print(f"wrote {args.out} ({args.env} trajectory {args.trajectory} frame {args.frame}, "
           f"{args.domain} domain, {args.width}x{args.height})")
     return 0
   seq = synthetic.make_sequence(args.env, args.trajectory, domain=args.domain,
                                 num_frames=args.num_frames, height=args.height, width=args.width,
-                                seed=args.seed, shift=args.shift, realism=not args.no_realism)
+                                seed=args.seed, shift=args.shift, realism=not args.no_realism,
+                                sensing=sensing)
   seq.save(args.out)
   print(f"saved {seq!r} to {args.out}")
   return 0

@@ -235,7 +235,7 @@ def value_noise(p):
   return y0 + wz * (y1 - y0)
 
 
-def texture(p_local, texture_id, scale, color, color2):
+def texture(p_local, texture_id, scale, color, color2, *, footprint=None):
   """Solid procedural textures evaluated at local hit points.
 
   Args:
@@ -244,6 +244,11 @@ def texture(p_local, texture_id, scale, color, color2):
     scale: `(N,) float32` cycles per metre.
     color: `(N, 3)` base colour.
     color2: `(N, 3)` secondary colour.
+    footprint: optional `(N,)` σ in metres of the pixel's filter on the surface (see
+      `sensing.pixel_footprint`). A camera pixel integrates light over its area, so pattern
+      detail finer than the pixel averages out: each pattern's contrast is scaled by the
+      Gaussian filter's response `exp(−2π² (freq · footprint)²)` at its frequency, fading far
+      and grazing textures to their mean colour. None: point samples, as a plain ray caster.
 
   Returns:
     `(N, 3) float32` albedo.
@@ -253,16 +258,24 @@ def texture(p_local, texture_id, scale, color, color2):
   checker = jnp.mod(jnp.sum(jnp.floor(f), axis=-1), 2.0)
   n1 = value_noise(f)
   cell = jnp.floor(4.0 * f).astype(jnp.int32)
-  fine = _hash_bits(cell[:, 0], cell[:, 1], cell[:, 2])  # fine speckle on top of the noise
-  noise = jnp.clip(0.75 * n1 + 0.25 * _unit(fine, 0), 0.0, 1.0)
+  fine = _unit(_hash_bits(cell[:, 0], cell[:, 1], cell[:, 2]), 0)  # speckle on the noise
   grain = jnp.mod(f[:, 0] * 0.5 + 0.15 * jnp.sin(2.0 * f[:, 1]) + 0.6 * n1, 1.0)
   wood = jnp.clip(jnp.abs(2.0 * grain - 1.0) ** 2, 0.0, 1.0)
-  mix = jnp.select([texture_id == STRIPES, texture_id == CHECKER, texture_id == WOOD,
-                    texture_id == NOISE], [stripes, checker, wood, noise], 0.0)
-  albedo = color + mix[:, None] * (color2 - color)
   block = jnp.floor(f * jnp.array([1.0, 1.0, 0.5])).astype(jnp.int32)
   bits = _hash_bits(block[:, 0], block[:, 1], block[:, 2])
   screen_rgb = jnp.stack([_unit(bits, 0), _unit(bits, 8), _unit(bits, 16)], -1)
+  if footprint is not None:
+    response = lambda freq: jnp.exp(-2.0 * jnp.pi ** 2 * jnp.square(freq * footprint))
+    base, speckle = response(scale), response(4.0 * scale)
+    toward = lambda x, mean, r: mean + r * (x - mean)  # contrast around the pattern's mean
+    stripes, checker = toward(stripes, 0.5, base), toward(checker, 0.5, base)
+    n1, fine = toward(n1, 0.5, base), toward(fine, 0.5, speckle)
+    wood = toward(wood, 1.0 / 3.0, base)
+    screen_rgb = toward(screen_rgb, 0.5, base[:, None])
+  noise = jnp.clip(0.75 * n1 + 0.25 * fine, 0.0, 1.0)
+  mix = jnp.select([texture_id == STRIPES, texture_id == CHECKER, texture_id == WOOD,
+                    texture_id == NOISE], [stripes, checker, wood, noise], 0.0)
+  albedo = color + mix[:, None] * (color2 - color)
   screen = 0.35 * color + 0.65 * screen_rgb
   return jnp.where((texture_id == SCREEN)[:, None], screen, albedo)
 

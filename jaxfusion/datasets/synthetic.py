@@ -109,20 +109,35 @@ def _shade(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Li
 
 @jax.jit
 def _radiance(packed: raycast.PackedScene, hits: raycast.Hits, light: appearance.Lighting,
-              gloss, shininess):
-  """`(H, W, 3)` unclipped scene radiance with the glossy highlights of `sensing`."""
+              origin, fx, config: SensingConfig):
+  """`(H, W, 3)` unclipped scene radiance with the sensing's texture filter and glossy
+  highlights (`origin (3,)`: the camera centre, `fx`: focal length in pixels)."""
   p = packed.prims
   g = jnp.maximum(hits.prim, 0).reshape(-1)
   normal, p_world = hits.normal.reshape(-1, 3), hits.p_world.reshape(-1, 3)
   view_dir = hits.view_dir.reshape(-1, 3)
+  footprint = camera_model.pixel_footprint(
+      jnp.linalg.norm(p_world - origin, axis=-1), jnp.abs(jnp.sum(normal * view_dir, -1)), fx,
+      config.texture_filter)
   albedo = appearance.texture(hits.p_local.reshape(-1, 3), p.texture[g], p.texture_scale[g],
-                              p.color[g], p.color2[g])
+                              p.color[g], p.color2[g], footprint=footprint)
   rgb = appearance.shade(albedo, normal, p_world, view_dir, p.emission[g], light, clip=False)
   rgb = rgb + light.exposure * camera_model.glossy_highlight(
       normal, p_world, view_dir, p.gloss[g], light.lamp_pos, light.lamp_color, light.sun_dir,
-      light.sun_color, strength=gloss, shininess=shininess)
+      light.sun_color, strength=config.gloss, shininess=config.shininess)
   rgb = jnp.where((hits.prim.reshape(-1) >= 0)[:, None], rgb, 0.0)
   return rgb.reshape(hits.normal.shape)
+
+
+def _scene_radiance(world: SyntheticScene, packed, hits, T, camera: Camera,
+                    config: SensingConfig):
+  return _radiance(packed, hits, world.lighting, np.asarray(T, np.float32)[:3, 3],
+                   np.float32(camera.fx), _traced(config))
+
+
+def _traced(config: SensingConfig) -> SensingConfig:
+  """The config with every field as a float32 array (one compilation for all values)."""
+  return SensingConfig(*(np.float32(x) for x in config))
 
 
 def _check_sensing(sensing) -> SensingConfig:
@@ -201,11 +216,11 @@ def _finish(synthetic_scene: SyntheticScene, packed, hits, T, camera: Camera, *,
     key = jax.random.PRNGKey(0) if key is None else key
     k_depth, k_image = jax.random.split(key)
     depth = sensor.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
-    radiance = _radiance(packed, hits, synthetic_scene.lighting, np.float32(config.gloss),
-                         np.float32(config.shininess))
+    radiance = _scene_radiance(synthetic_scene, packed, hits, T, camera, config)
     if state is None:
       state = camera_model.still_state(_converged_exposure(radiance, config))
-    rgb, metered = camera_model.camera_image(k_image, radiance, hits.depth, camera, state, config)
+    rgb, metered = camera_model.camera_image(k_image, radiance, hits.depth, camera, state,
+                                             _traced(config))
     metered = float(metered)
   else:
     rgb = _shade(packed, hits, synthetic_scene.lighting)
@@ -307,8 +322,7 @@ def _sensed_frames(world: SyntheticScene, poses, keys, camera: Camera, sizes,
     T = np.asarray(T, np.float32)
     packed, hits = _cast(world, T, camera, height, width, sizes, 64)
     if log_exposure is None:  # the camera was running before the first frame: AE settled
-      radiance = _radiance(packed, hits, world.lighting, np.float32(config.gloss),
-                           np.float32(config.shininess))
+      radiance = _scene_radiance(world, packed, hits, T, camera, config)
       log_exposure = float(np.log(_converged_exposure(radiance, config, bias[0])))
     exposure = float(np.exp(log_exposure))
     exposure_time, gain = camera_model.split_exposure(exposure, config)
@@ -388,10 +402,10 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
                          VIEW_TILE_SIZES, VIEW_PACK_STEP)
     key = jax.random.PRNGKey(int(rng.integers(2**31)))
     if config.enabled:
-      radiance = _radiance(packed, hits, world.lighting, np.float32(config.gloss),
-                           np.float32(config.shininess))
+      radiance = _scene_radiance(world, packed, hits, T, camera, config)
       state = _random_state(sense_rng, radiance, T, config)
-      rgb, _ = camera_model.camera_image(key, radiance, hits.depth, camera, state, config)
+      rgb, _ = camera_model.camera_image(key, radiance, hits.depth, camera, state,
+                                         _traced(config))
     else:
       clean = _to_uint8(_shade(packed, hits, world.lighting))
       rgb = sensor.noisy_image(key, jnp.asarray(clean, jnp.float32) / 255.0)
