@@ -178,7 +178,9 @@ def test_cache_key_changes_with_the_images(tmp_path):
 
 
 def test_tiny_study_end_to_end(tmp_path):
-  config = study.StudyConfig(seeds=(5,), shifts=(0.0, 1.0), envs=("office",), trajectories=(0,),
+  # Layout seed 0, office, trajectory 0, 3 frames at 24×32: the scene of test_experiments.py,
+  # so that the renderer's compiled shapes are shared when both run.
+  config = study.StudyConfig(seeds=(0,), shifts=(0.0, 1.0), envs=("office",), trajectories=(0,),
                              num_frames=3, height=H, width=W, num_samples=3, capacity=CAPACITY,
                              num_resamples=50)
   front = SimulatedFrontEnd()
