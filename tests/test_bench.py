@@ -43,3 +43,11 @@ def test_bench_suite_runs_on_a_tiny_configuration(tmp_path):
   assert data["throughput"] and data["device"]
   assert (tmp_path / "results.md").exists()
   assert results["throughput"][0]["frames_per_s"] > 0
+  (row,) = data["pipeline"]
+  assert (row["height"], row["width"], row["M"], row["frames_per_call"]) == (24, 32, 2, 2)
+  shares = [row[f"{stage}_share"] for stage in ("sample", "moments", "fuse")]
+  assert all(0 < x < 1 for x in shares) and abs(sum(shares) - 1) < 1e-9
+  assert row["end_to_end_ms_per_frame"] == pytest.approx(
+      row["sample_ms_per_frame"] + row["moments_ms_per_frame"] + row["fuse_ms_per_frame"])
+  assert all(r["numpy_sum0_ms"] > 0 for r in data["mc_moments"])
+  assert "The whole pipeline" in (tmp_path / "results.md").read_text()
