@@ -365,3 +365,13 @@ def test_texture_detail_fades_with_the_footprint(texture_id):
   spread = [np.asarray(appearance.texture(*args, footprint=np.full(n, fp))).std(0).sum()
             for fp in (0.0, 0.01, 0.02, 0.05, 1.0)]
   assert np.all(np.diff(spread) < 0) and spread[-1] < 1e-3 * spread[0]  # float32 rounding
+
+
+def test_camera_effects_summary(sequences):
+  from jaxfusion.datasets import __main__ as cli
+  on, _ = sequences
+  effects = cli.camera_effects(on, SensingConfig())
+  assert all(v.shape == (4,) for v in effects.values())
+  assert np.all(effects["motion_blur_px"] > 0)  # the walk never stops
+  assert np.all(effects["defocus_sigma_px"] >= SensingConfig().optical_blur - 1e-6)
+  np.testing.assert_allclose(effects["exposure"], on.info["camera_states"]["exposure"])

@@ -12,7 +12,9 @@ import argparse
 import sys
 import time
 
-from jaxfusion.datasets import preview, synthetic
+import numpy as np
+
+from jaxfusion.datasets import preview, sensing, synthetic
 from jaxfusion.datasets.classes import CLASS_COLORS, SCANNET_CLASS_NAMES, SCANNET_COLORS
 from jaxfusion.datasets.sensing import SensingConfig
 from jaxfusion.datasets.sequence import RGBDSequence
@@ -34,6 +36,29 @@ def _add_synthetic_args(p: argparse.ArgumentParser) -> None:
 
 def _colors_for(seq: RGBDSequence):
   return SCANNET_COLORS if tuple(seq.class_names) == SCANNET_CLASS_NAMES else CLASS_COLORS
+
+
+def camera_effects(seq: RGBDSequence, config: SensingConfig) -> dict:
+  """Per-frame size of the camera model's blur in a synthetic sequence.
+
+  Returns:
+    dict of `(T,)` arrays: `motion_blur_px` (median over pixels of the length of the motion
+    streak), `defocus_sigma_px` (median thin-lens + optical σ), `exposure`.
+  """
+  states = seq.info["camera_states"]
+  dt = states["frame_interval_s"]
+  motion, defocus = [], []
+  for t in range(len(seq)):
+    other = seq.T_world_cam[t - 1] if t > 0 else seq.T_world_cam[min(1, len(seq) - 1)]
+    v, w = sensing.velocity(other, seq.T_world_cam[t], dt)
+    path = sensing.motion_from_velocity(v, w, states["exposure_time_s"][t])
+    du, dv = sensing.motion_flow(seq.depth[t], seq.camera, path)
+    motion.append(float(np.median(np.hypot(du[-1], dv[-1]))))
+    defocus.append(float(np.median(sensing.defocus_sigma(
+        seq.depth[t], seq.camera.fx, aperture=config.aperture,
+        focus_distance=config.focus_distance, optical_blur=config.optical_blur))))
+  return {"motion_blur_px": np.array(motion), "defocus_sigma_px": np.array(defocus),
+          "exposure": np.array(states["exposure"])}
 
 
 def main(argv=None) -> int:
@@ -79,6 +104,11 @@ def main(argv=None) -> int:
       print(f"{name}: {wall:.1f} ms/frame wall, {cpu:.1f} ms/frame CPU (all threads) "
             f"({args.env} trajectory {args.trajectory}, {args.num_frames} frames at "
             f"{args.width}x{args.height})", flush=True)
+    seq = synthetic.make_sequence(args.env, args.trajectory, **kwargs)
+    blur = camera_effects(seq, SensingConfig())
+    print("per frame, median over pixels (and over frames: median / 90th percentile): "
+          + ", ".join(f"{k} {np.median(v):.2f} / {np.percentile(v, 90):.2f}"
+                      for k, v in blur.items()), flush=True)
     return 0
   if args.command == "render":
     if not 0 <= args.frame < args.num_frames:
