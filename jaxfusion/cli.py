@@ -258,7 +258,8 @@ def build_parser():
     from jaxfusion import tune
   except ImportError:
     tune = None
-  for builder in ("add_sweep_parser", "add_tune_beta_parser"):
+  for builder in ("add_sweep_parser", "add_tune_beta_parser", "add_tune_compare_parser",
+                  "add_tune_protocol_parser"):
     if tune is not None and hasattr(tune, builder):
       getattr(tune, builder)(sub)
   from jaxfusion import simulation

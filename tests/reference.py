@@ -23,7 +23,8 @@ def pixel_points(depth, T_world_cam, fx, fy, cx, cy):
 
 
 def per_class_regularize(p, beta):
-  """SPEC rule 7, one pixel: `p̃_i = ((1−β_i) p_i + β_i/K) / Z`, `Z = Σ_i (…)` (uniform if Z = 0)."""
+  """SPEC rule 7, one pixel: `p̃_i = ((1−β_i) p_i + β_i/K) / Z`, `Z = Σ_i (…)`; uniform if
+  Z = 0."""
   K = len(p)
   mixed = np.array([(1.0 - float(beta[i])) * p[i] + float(beta[i]) / K for i in range(K)])
   Z = sum(mixed)
