@@ -212,7 +212,7 @@ def test_sequence_motion_follows_the_trajectory():
                          wb_drift=0.0)
   slow = synthetic.make_sequence("office", 0, num_frames=4, sensing=config, **SIZE)
   fast = synthetic.make_sequence("office", 0, num_frames=4,
-                                 sensing=config._replace(speed=20.0), **SIZE)
+                                 sensing=config._replace(speed=4.0), **SIZE)
   assert fast.info["camera_states"]["frame_interval_s"] < slow.info["camera_states"][
       "frame_interval_s"]
   sharpness = lambda s: np.abs(np.diff(s.rgb.astype(float), axis=2)).mean()
@@ -359,10 +359,11 @@ def test_texture_detail_fades_with_the_footprint(texture_id):
   scale = np.full(n, 8.0, np.float32)
   color, color2 = np.tile([0.8, 0.2, 0.1], (n, 1)), np.tile([0.1, 0.3, 0.9], (n, 1))
   args = (p_local, ids, scale, color.astype(np.float32), color2.astype(np.float32))
-  point = np.asarray(appearance.texture(*args))
-  np.testing.assert_allclose(np.asarray(appearance.texture(*args, footprint=np.zeros(n))), point,
-                             atol=1e-6)
-  spread = [np.asarray(appearance.texture(*args, footprint=np.full(n, fp))).std(0).sum()
+  texture = jax.jit(appearance.texture)
+  point = np.asarray(texture(*args))
+  np.testing.assert_allclose(np.asarray(texture(*args, footprint=np.zeros(n, np.float32))),
+                             point, atol=1e-6)
+  spread = [np.asarray(texture(*args, footprint=np.full(n, fp, np.float32))).std(0).sum()
             for fp in (0.0, 0.01, 0.02, 0.05, 1.0)]
   assert np.all(np.diff(spread) < 0) and spread[-1] < 1e-3 * spread[0]  # float32 rounding
 
@@ -375,3 +376,14 @@ def test_camera_effects_summary(sequences):
   assert np.all(effects["motion_blur_px"] > 0)  # the walk never stops
   assert np.all(effects["defocus_sigma_px"] >= SensingConfig().optical_blur - 1e-6)
   np.testing.assert_allclose(effects["exposure"], on.info["camera_states"]["exposure"])
+
+
+def test_motion_taps_cover_the_streak():
+  assert [sensing.motion_taps(x) for x in (0.0, 0.2, 1.0, 1.5, 6.2, 7.0, 100.0)] == [
+      2, 2, 2, 4, 8, 8, sensing.MAX_MOTION_TAPS]
+  depth = np.full((H, W), 3.0, np.float32)
+  omega, t_exp = [0.0, 20.0, 0.0], 0.01  # the pan of test_motion_blur_length_matches_the_pan
+  motion = sensing.exposure_motion(np.zeros(3), omega, t_exp, depth, CAM)
+  assert motion.shape == (16, 4, 4)  # the streak: 6.2 px on the axis, 8.6 px at the border
+  np.testing.assert_allclose(motion[-1], sensing.motion_from_velocity(np.zeros(3), omega,
+                                                                      t_exp)[-1], atol=1e-6)

@@ -14,8 +14,9 @@ from the next, each with a physical model and a documented parameter in `Sensing
   `± wb_range` in log gain). The illuminant's colour is not corrected away (it is part of the
   domain gap), only the camera's gains wander.
 * **Motion blur** from the camera's own velocity: the image is averaged over the poses the
-  camera passes through during the exposure time (`MOTION_TAPS` poses between the frame's
-  pose and `exposure_time / frame_interval` of the way back to the previous pose), using the
+  camera passes through during the exposure time (K poses between the frame's pose and
+  `exposure_time / frame_interval` of the way back to the previous pose; K a power of two
+  with at least one pose per pixel of the longest streak, up to `MAX_MOTION_TAPS`), using the
   per-pixel flow those poses induce through the depth. A still camera gives no blur.
 * **Defocus**: a thin lens focused at `focus_distance` with an entrance pupil of `aperture`
   metres blurs a surface at depth z with a circle of confusion of
@@ -42,7 +43,7 @@ walked at a mean speed of `speed` m/s, so consecutive frames lie `step / speed` 
 `SensingConfig.off()` turns everything off: the renderer then produces exactly the images of
 the plain `realism` pipeline (`sensor.noisy_image`).
 
-Shape legend: H×W pixels, T frames, K = `MOTION_TAPS` poses within one exposure.
+Shape legend: H×W pixels, T frames, K poses within one exposure.
 """
 
 import functools
@@ -54,8 +55,10 @@ import numpy as np
 
 from jaxfusion.camera import Camera
 
-# Poses averaged over one exposure for motion blur.
+# Poses averaged over one exposure for motion blur: the default, and the most `exposure_motion`
+# uses (it picks a power of two ≥ the streak length in pixels + 1, at least 2).
 MOTION_TAPS = 8
+MAX_MOTION_TAPS = 32
 # Blur levels (Gaussian σ in pixels) between which the depth-dependent blur is interpolated;
 # the largest is the most blur any pixel gets.
 BLUR_LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0)
@@ -299,6 +302,39 @@ def motion_from_velocity(v_cam, omega_cam, exposure_time: float, *,
     out[k, :3, :3] = _rotvec_to_matrix(np.asarray(omega_cam, np.float64) * s)
     out[k, :3, 3] = np.asarray(v_cam, np.float64) * s
   return out.astype(np.float32)
+
+
+@jax.jit
+def streak_length(depth, camera: Camera, T_end):
+  """Longest motion-blur streak in pixels: the largest flow to the end-of-exposure pose
+  `T_end (4, 4)` (`T_cam_tap`) over the image `depth (H, W)`."""
+  du, dv = _tap_flow(_backproject(depth, camera), camera, jnp.asarray(T_end, jnp.float32))
+  return jnp.max(jnp.hypot(du, dv))
+
+
+def motion_taps(streak_px: float) -> int:
+  """Poses per exposure for a streak of `streak_px` pixels: the smallest power of two
+  ≥ `streak_px + 1`, within `[2, MAX_MOTION_TAPS]` (so samples lie ≤ 1 px apart)."""
+  need = max(2.0, float(streak_px) + 1.0)
+  return int(min(MAX_MOTION_TAPS, 1 << int(np.ceil(np.log2(need)))))
+
+
+def exposure_motion(v_cam, omega_cam, exposure_time: float, depth, camera: Camera) -> np.ndarray:
+  """`motion_from_velocity` with as many poses as the frame's longest streak needs.
+
+  Args:
+    v_cam: `(3,)` linear velocity in m/s (camera frame).
+    omega_cam: `(3,)` angular velocity in rad/s (camera frame).
+    exposure_time: seconds.
+    depth: `(H, W)` the frame's z-depth.
+    camera: intrinsics.
+
+  Returns:
+    `(K, 4, 4) float32` with `K = motion_taps(streak_length(...))`.
+  """
+  end = motion_from_velocity(v_cam, omega_cam, exposure_time, taps=2)[-1]
+  streak = float(streak_length(depth, camera, end))
+  return motion_from_velocity(v_cam, omega_cam, exposure_time, taps=motion_taps(streak))
 
 
 def velocity(T_prev, T_cur, dt: float) -> tuple:
@@ -556,7 +592,6 @@ def meter(image):
   return jnp.sum(luma * meter_weights(*image.shape[:2]))
 
 
-@jax.jit
 def camera_image(key, radiance, depth, camera: Camera, state: CameraState, config: SensingConfig):
   """Turns a frame's scene radiance into the camera's colour image.
 
@@ -575,8 +610,15 @@ def camera_image(key, radiance, depth, camera: Camera, state: CameraState, confi
     `(rgb, metered)`: `(H, W, 3) float32` colour in [0, 1] before 8-bit quantisation, and the
     scalar centre-weighted brightness of the noise-free image (what the AE meters).
   """
-  height, width = depth.shape
+  # Two compiled pieces: the motion blur is compiled once per number of poses K, the rest once.
   img = motion_blur(radiance, depth, camera, state.motion)
+  return _lens_and_sensor(key, img, depth, camera, state._replace(motion=None), config)
+
+
+@jax.jit
+def _lens_and_sensor(key, img, depth, camera: Camera, state: CameraState, config: SensingConfig):
+  """Defocus, vignetting, exposure, noise, white balance and clipping (see `camera_image`)."""
+  height, width = depth.shape
   sigma = defocus_sigma(depth, camera.fx, aperture=config.aperture,
                         focus_distance=config.focus_distance, optical_blur=config.optical_blur)
   img = variable_blur(img, sigma)

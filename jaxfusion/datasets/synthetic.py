@@ -331,7 +331,7 @@ def _sensed_frames(world: SyntheticScene, poses, keys, camera: Camera, sizes,
       v, w = camera_model.velocity(other, T, dt)
       if t == 0:
         v, w = -v, -w
-      motion = camera_model.motion_from_velocity(v, w, exposure_time)
+      motion = camera_model.exposure_motion(v, w, exposure_time, hits.depth, camera)
     else:
       motion = camera_model.still_state().motion
     wb = np.array([np.exp(log_wb[t, 0]), 1.0, np.exp(log_wb[t, 1])], np.float32)
@@ -403,7 +403,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
     key = jax.random.PRNGKey(int(rng.integers(2**31)))
     if config.enabled:
       radiance = _scene_radiance(world, packed, hits, T, camera, config)
-      state = _random_state(sense_rng, radiance, T, config)
+      state = _random_state(sense_rng, radiance, hits.depth, T, camera, config)
       rgb, _ = camera_model.camera_image(key, radiance, hits.depth, camera, state,
                                          _traced(config))
     else:
@@ -414,7 +414,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
   return rgbs, labels
 
 
-def _random_state(rng: np.random.Generator, radiance, T_world_cam,
+def _random_state(rng: np.random.Generator, radiance, depth, T_world_cam, camera: Camera,
                   config: SensingConfig) -> CameraState:
   """Camera settings of an independent view, drawn from the camera model's stationary spread."""
   bias = rng.normal(0.0, config.exposure_drift)
@@ -425,4 +425,4 @@ def _random_state(rng: np.random.Generator, radiance, T_world_cam,
   return CameraState(np.float32(exposure), np.float32(gain),
                      np.array([np.exp(log_wb[0]), 1.0, np.exp(log_wb[1])], np.float32),
                      np.float32(np.exp(config.noise_jitter * rng.normal())),
-                     camera_model.motion_from_velocity(v, w, exposure_time))
+                     camera_model.exposure_motion(v, w, exposure_time, depth, camera))
