@@ -387,3 +387,19 @@ def test_motion_taps_cover_the_streak():
   assert motion.shape == (16, 4, 4)  # the streak: 6.2 px on the axis, 8.6 px at the border
   np.testing.assert_allclose(motion[-1], sensing.motion_from_velocity(np.zeros(3), omega,
                                                                       t_exp)[-1], atol=1e-6)
+
+
+def test_entry_points_reject_bad_input():
+  img, depth = _texture(), np.full((H, W), 2.0, np.float32)
+  with pytest.raises(ValueError, match="radiance"):
+    sensing.camera_image(jax.random.PRNGKey(0), img[..., :2], depth, CAM, _state(),
+                         SensingConfig())
+  with pytest.raises(ValueError, match="CameraState"):
+    sensing.camera_image(jax.random.PRNGKey(0), img, depth, CAM,
+                         _state()._replace(motion=np.eye(4)), SensingConfig())
+  with pytest.raises(ValueError, match="dt"):
+    sensing.velocity(np.eye(4), np.eye(4), 0.0)
+  with pytest.raises(ValueError, match="speed"):
+    sensing.frame_interval(np.tile(np.eye(4), (3, 1, 1)), 0.0)
+  with pytest.raises(ValueError, match="taps"):
+    sensing.motion_from_velocity(np.zeros(3), np.zeros(3), 0.01, taps=0)

@@ -201,6 +201,8 @@ def frame_interval(poses, speed: float) -> float:
   Returns:
     The mean step length divided by `speed`; 1/30 s when the camera centre does not move.
   """
+  if not speed > 0:
+    raise ValueError(f"speed must be > 0; got {speed}")
   eyes = np.asarray(poses, np.float64)[:, :3, 3]
   if len(eyes) < 2:
     return 1.0 / 30.0
@@ -224,6 +226,9 @@ def ou_process(rng: np.random.Generator, num_steps: int, dt: float, sigma: float
     `(T, dims) float64` with `x_0 ~ N(0, σ²)`, `x_{t+1} = ρ x_t + √(1 − ρ²) σ ε`,
     `ρ = exp(−dt / τ)`.
   """
+  if num_steps < 0 or not dt > 0 or not tau > 0 or not sigma >= 0:
+    raise ValueError(f"ou_process needs num_steps ≥ 0, dt > 0, tau > 0, sigma ≥ 0; got "
+                     f"{num_steps}, {dt}, {tau}, {sigma}")
   rho = float(np.exp(-dt / tau))
   eps = rng.normal(size=(num_steps, dims))
   x = np.zeros((num_steps, dims))
@@ -252,6 +257,8 @@ def ae_step(log_exposure: float, metered: float, set_point: float, *, dt: float,
   Returns:
     The log exposure of the next frame.
   """
+  if not dt > 0:
+    raise ValueError(f"dt must be > 0; got {dt}")
   alpha = 1.0 - np.exp(-dt / config.ae_time_constant)
   step = np.log(set_point) - np.log(max(float(metered), 1e-4))
   return float(np.clip(log_exposure + alpha * step, np.log(config.exposure_min),
@@ -296,6 +303,8 @@ def motion_from_velocity(v_cam, omega_cam, exposure_time: float, *,
   Returns:
     `(K, 4, 4) float32` `T_cam_tap`; all identity when both velocities are zero.
   """
+  if taps < 1 or exposure_time < 0:
+    raise ValueError(f"need taps ≥ 1 and exposure_time ≥ 0; got {taps}, {exposure_time}")
   out = np.tile(np.eye(4), (taps, 1, 1))
   for k in range(1, taps):
     s = -exposure_time * k / max(taps - 1, 1)
@@ -342,6 +351,8 @@ def velocity(T_prev, T_cur, dt: float) -> tuple:
 
   Both are expressed in the frame of `T_cur` (camera-to-world poses).
   """
+  if not dt > 0:
+    raise ValueError(f"dt must be > 0; got {dt}")
   rel = np.linalg.inv(np.asarray(T_cur, np.float64)) @ np.asarray(T_prev, np.float64)
   return -rel[:3, 3] / dt, -_matrix_to_rotvec(rel[:3, :3]) / dt
 
@@ -610,6 +621,12 @@ def camera_image(key, radiance, depth, camera: Camera, state: CameraState, confi
     `(rgb, metered)`: `(H, W, 3) float32` colour in [0, 1] before 8-bit quantisation, and the
     scalar centre-weighted brightness of the noise-free image (what the AE meters).
   """
+  if radiance.ndim != 3 or radiance.shape[-1] != 3 or radiance.shape[:2] != depth.shape:
+    raise ValueError(f"radiance must be (H, W, 3) and depth (H, W); got {radiance.shape}, "
+                     f"{depth.shape}")
+  if not isinstance(state, CameraState) or np.ndim(state.motion) != 3 or np.shape(
+      state.motion)[1:] != (4, 4):
+    raise ValueError("state must be a CameraState with motion of shape (K, 4, 4)")
   # Two compiled pieces: the motion blur is compiled once per number of poses K, the rest once.
   img = motion_blur(radiance, depth, camera, state.motion)
   return _lens_and_sensor(key, img, depth, camera, state._replace(motion=None), config)
