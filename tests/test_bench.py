@@ -51,3 +51,11 @@ def test_bench_suite_runs_on_a_tiny_configuration(tmp_path):
       row["sample_ms_per_frame"] + row["moments_ms_per_frame"] + row["fuse_ms_per_frame"])
   assert all(r["numpy_sum0_ms"] > 0 for r in data["mc_moments"])
   assert "The whole pipeline" in (tmp_path / "results.md").read_text()
+
+
+def test_micro_benchmarks_run_on_tiny_sizes():
+  from bench import micro  # pylint: disable=import-outside-toplevel
+  terms = micro.terms(repeats=1, num_pixels=64, num_classes=3, blocks=2)
+  moments = micro.moments(repeats=1, num_samples=2, height=3, width=4, num_classes=3)
+  assert len(terms) == 4 and len(moments) == 5
+  assert all(0 < lo <= med for lo, med in list(terms.values()) + list(moments.values()))

@@ -13,7 +13,8 @@ from jaxfusion import camera as camera_lib
 from jaxfusion import tune
 
 # --- issue 11's snippet, as written -----------------------------------------------------------
-rng = np.random.default_rng(5); K = 4; cam = jf.Camera(16.0, 16.0, 9.5, 7.5)  # pylint: disable=multiple-statements
+# pylint: disable-next=multiple-statements
+rng = np.random.default_rng(5); K = 4; cam = jf.Camera(16.0, 16.0, 9.5, 7.5)
 frames = []
 for t in range(3):
   s = rng.dirichlet(np.ones(K), (6, 16, 20)).astype(np.float32)
