@@ -288,10 +288,10 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
           "seed": int(seed), "shift": float(shift), "realism": bool(realism),
           "room_size": [float(x) for x in world.layout.room]}
   if realism and config.enabled:
+    # The camera's drift depends on the sequence, not on the domain: both see the same camera.
+    rng = np.random.default_rng([seed, trajectory, ENVIRONMENTS.index(env), 5151])
     frames, info["camera_states"] = _sensed_frames(world, poses, keys, camera, sizes, config,
-                                                   height=height, width=width,
-                                                   rng=np.random.default_rng([seed, trajectory,
-                                                                              len(env), 5151]))
+                                                   height=height, width=width, rng=rng)
     info["sensing"] = config.as_dict()
   else:
     frames = [render(world, T, camera, height=height, width=width, realism=realism, key=k,
