@@ -23,6 +23,7 @@ from .net import SegNetConfig
 from .net import apply
 from .net import count_params
 from .net import init
+from .net import resnet18_config
 from .net import tiny_config
 from .sampling import deterministic_apply_fn
 from .sampling import deterministic_probs
@@ -38,6 +39,7 @@ __all__ = sorted([
     "CheckpointError", "DEFAULT_CLASS_NAMES", "LoadedModel", "PRETRAINED_PATH", "SegNet",
     "SegNetConfig", "apply", "count_params", "deterministic_apply_fn", "deterministic_probs",
     "deterministic_source", "ensemble_source", "init", "load", "load_pretrained",
-    "mc_dropout_source", "mc_samples", "mc_samples_batch", "prepare_images", "save",
+    "mc_dropout_source", "mc_samples", "mc_samples_batch", "prepare_images", "resnet18_config",
+    "save",
     "stochastic_apply_fn", "tiny_config",
 ])

@@ -32,25 +32,26 @@ from tqdm import tqdm
 from . import checkpoint, evaluate, net
 
 
-NUM_TRAIN = 2400  # Training views rendered by default.
+NUM_TRAIN = 1600  # Training views rendered by default.
 
 
 class TrainConfig(NamedTuple):
   """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
 
-  steps: int = 1200
+  steps: int = 3000
   batch_size: int = 12
   learning_rate: float = 3e-3
-  warmup_steps: int = 100
+  warmup_steps: int = 60
   weight_decay: float = 1e-4
   clip_norm: float = 1.0
   class_weight_power: float = 0.5
   class_weight_max: float = 8.0
   color_strength: float = 1.0
-  blur_prob: float = 0.5
+  blur_prob: float = 0.0
   blur_max_sigma: float = 1.5
-  noise_max: float = 0.04
-  zoom_max: float = 1.4
+  noise_min: float = 0.02
+  noise_max: float = 0.02
+  zoom_max: float = 1.0
 
 
 def class_weights(labels: np.ndarray, num_classes: int, *, power: float = 0.5,
@@ -145,7 +146,8 @@ def random_zoom(key: jax.Array, image: jax.Array, label: jax.Array, max_zoom: fl
 
 def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
             strength: float = 1.0, blur_prob: float = 0.0, blur_max_sigma: float = 1.5,
-            noise_max: float = 0.02, zoom_max: float = 1.0) -> tuple[jax.Array, jax.Array]:
+            noise_min: float = 0.02, noise_max: float = 0.02, zoom_max: float = 1.0
+            ) -> tuple[jax.Array, jax.Array]:
   """Random flip, shifted crop, zoom, colour randomisation, blur and noise, per image.
 
   All of it is generic photometric / geometric augmentation: nothing here is derived from the
@@ -159,7 +161,9 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
     blur_prob: probability of a Gaussian blur with sigma uniform in `[0, blur_max_sigma]` px
       (defocus, motion, resolution loss).
     blur_max_sigma: largest blur standard deviation in pixels.
-    noise_max: per-image sensor-noise standard deviation drawn uniformly in `[0, noise_max]`.
+    noise_min: smallest per-image sensor-noise standard deviation.
+    noise_max: largest one; the standard deviation is drawn uniformly in
+      `[noise_min, noise_max]` per image (fixed when they are equal).
     zoom_max: largest zoom-in factor (objects seen closer); 1 disables it.
 
   Returns:
@@ -167,8 +171,13 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
   """
 
   def one(k, image, label):
+    # 14 keys when the zoom, blur and noise-level draws are all off: bit-identical to the
+    # recipe of the shipped weights; 18 when any is on.
+    extra = zoom_max > 1.0 or blur_prob > 0 or noise_min != noise_max
+    keys = jax.random.split(k, 18 if extra else 14)
     (k_flip, k_dx, k_dy, k_gain, k_bright, k_con, k_sat, k_noise, k_hue, k_hue_on, k_perm,
-     k_perm_on, k_gray, k_gamma, k_zoom, k_blur, k_blur_on, k_noise_level) = jax.random.split(k, 18)
+     k_perm_on, k_gray, k_gamma) = keys[:14]
+    k_zoom, k_blur, k_blur_on, k_noise_level = keys[14:] if extra else (None,) * 4
     flip = jax.random.bernoulli(k_flip)
     image = jnp.where(flip, image[:, ::-1], image)
     label = jnp.where(flip, label[:, ::-1], label)
@@ -207,7 +216,8 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
       sigma = jnp.where(jax.random.bernoulli(k_blur_on, blur_prob),
                         jax.random.uniform(k_blur, (), minval=0.0, maxval=blur_max_sigma), 0.0)
       image = gaussian_blur(image, sigma)
-    noise = jax.random.uniform(k_noise_level, (), minval=0.0, maxval=noise_max)
+    noise = (noise_max if noise_min == noise_max else
+             jax.random.uniform(k_noise_level, (), minval=noise_min, maxval=noise_max))
     image = image + noise * jax.random.normal(k_noise, image.shape)
     return jnp.clip(image, 0.0, 1.0), label
 
@@ -283,7 +293,8 @@ def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
 def augment_kwargs(cfg: TrainConfig) -> tuple[tuple[str, float], ...]:
   """The augmentation settings of `cfg` as hashable keyword arguments of `augment`."""
   return (("strength", float(cfg.color_strength)), ("blur_prob", float(cfg.blur_prob)),
-          ("blur_max_sigma", float(cfg.blur_max_sigma)), ("noise_max", float(cfg.noise_max)),
+          ("blur_max_sigma", float(cfg.blur_max_sigma)), ("noise_min", float(cfg.noise_min)),
+          ("noise_max", float(cfg.noise_max)),
           ("zoom_max", float(cfg.zoom_max)))
 
 
@@ -356,7 +367,7 @@ def _num_classes(params: nnx.State) -> int:
 
 
 def load_domain(domain: str, num_images: int, *, height: int, width: int, seed: int,
-                shift: float = 1.0, cache_dir: str | None = None
+                shift: float = 1.0, cache_dir: str | None = None, sensing: bool = True
                 ) -> tuple[np.ndarray, np.ndarray]:
   """Renders `num_images` views of the embedded world (`jaxfusion.datasets.synthetic`).
 
@@ -369,6 +380,8 @@ def load_domain(domain: str, num_images: int, *, height: int, width: int, seed: 
     shift: test-domain shift strength.
     cache_dir: if given, rendered views are stored there as `.npz` and reused when the same
       split is asked for again (rendering dominates start-up time on a CPU).
+    sensing: render with the view-dependent camera model (`SensingConfig()`), else with
+      `SensingConfig.off()` (the plain renderer).
 
   Returns:
     `(rgb (N, H, W, 3) uint8, labels (N, H, W) int32)`.
@@ -377,13 +390,16 @@ def load_domain(domain: str, num_images: int, *, height: int, width: int, seed: 
   if cache_dir is not None:
     cache = pathlib.Path(cache_dir) / (
         f"{domain}_n{num_images}_{height}x{width}_seed{seed}_shift{shift:g}_"
+        f"sensing{'on' if sensing else 'off'}_"
         f"{dataset_version()}.npz")
     if cache.is_file():
       with np.load(cache) as data:
         return data["rgb"], data["labels"]
   from jaxfusion.datasets import synthetic  # Application layer: only the commands need it.
+  from jaxfusion.datasets import SensingConfig
   rgb, labels = synthetic.sample_views(domain, num_images, height=height, width=width,
-                                       seed=seed, shift=shift)
+                                       seed=seed, shift=shift,
+                                       sensing=SensingConfig() if sensing else SensingConfig.off())
   rgb, labels = np.asarray(rgb, np.uint8), np.asarray(labels, np.int32)
   if cache is not None:
     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -436,7 +452,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                  help="scale of the colour augmentation (0 = geometry and noise only)")
   p.add_argument("--blur-prob", type=float, default=TrainConfig().blur_prob)
   p.add_argument("--blur-max-sigma", type=float, default=TrainConfig().blur_max_sigma)
+  p.add_argument("--noise-min", type=float, default=TrainConfig().noise_min)
   p.add_argument("--noise-max", type=float, default=TrainConfig().noise_max)
+  p.add_argument("--sensing", choices=("on", "off"), default="off",
+                 help="render the views with the embedded world's view-dependent camera model "
+                      "(sample_views' default since datasets ecb82f6) or without it (the "
+                      "renderer the shipped weights were trained with)")
   p.add_argument("--zoom-max", type=float, default=TrainConfig().zoom_max)
   p.add_argument("--save-every", type=int, default=250,
                  help="steps between partial checkpoints (<out>.partial.msgpack); 0 = never")
@@ -501,7 +522,10 @@ def recipe_defaults(recipe: dict[str, Any]) -> dict[str, Any]:
     raise ValueError(f"the recipe lacks field {e}; pass a segnet.json written by this command")
   # Augmentation fields added after the first records; absent means "off" (the old recipe).
   defaults.update(blur_prob=tc.get("blur_prob", 0.0), blur_max_sigma=tc.get("blur_max_sigma", 1.5),
-                  noise_max=tc.get("noise_max", 0.02), zoom_max=tc.get("zoom_max", 1.0))
+                  noise_max=tc.get("noise_max", 0.02), zoom_max=tc.get("zoom_max", 1.0),
+                  sensing=data.get("sensing", "off"))
+  # A record with noise_max but no noise_min drew the level from [0, noise_max].
+  defaults["noise_min"] = tc.get("noise_min", 0.0 if "noise_max" in tc else 0.02)
   for name in _FIXED_TRAIN_FIELDS:
     if name in tc and tc[name] != getattr(TrainConfig(), name):
       raise ValueError(f"the recipe sets {name}={tc[name]}, which the command line cannot "
@@ -532,9 +556,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
                     warmup_steps=args.warmup, weight_decay=args.weight_decay,
                     color_strength=args.color_strength, blur_prob=args.blur_prob,
-                    blur_max_sigma=args.blur_max_sigma, noise_max=args.noise_max,
+                    blur_max_sigma=args.blur_max_sigma, noise_min=args.noise_min,
+                    noise_max=args.noise_max,
                     zoom_max=args.zoom_max)
-  size = dict(height=args.height, width=args.width, cache_dir=args.cache)
+  size = dict(height=args.height, width=args.width, cache_dir=args.cache,
+              sensing=args.sensing == "on")
 
   t0 = time.time()
   print(f"rendering data: {num_train} train, {num_eval} val, {num_eval} test at "
@@ -588,6 +614,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       "seed": args.seed,
       "data": {"generator": "jaxfusion.datasets.synthetic.sample_views",
                "version": dataset_version(), "height": args.height, "width": args.width,
+               "sensing": args.sensing,
                "train_sha256": hashlib.sha256(train_x.tobytes() + train_y.tobytes()).hexdigest(),
                "test_sha256": hashlib.sha256(test_x.tobytes() + test_y.tobytes()).hexdigest(),
                "train": {"domain": "train", "num_images": num_train, "seed": args.seed},

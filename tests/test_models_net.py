@@ -32,6 +32,14 @@ def test_config_round_trips_through_json_dict():
   assert config.output_stride == 8
 
 
+def test_resnet18_config_is_the_deeper_deeplab_variant():
+  config = net.resnet18_config()
+  assert config.output_stride == 8 and config.num_dropout_layers == 9
+  _, params = net.abstract_params(config)
+  assert 2_800_000 < net.count_params(params) < 3_000_000
+  assert net.count_params(net.abstract_params(net.SegNetConfig())[1]) == 493_503
+
+
 @pytest.mark.parametrize("bad", [
     dict(widths=(8, 16), strides=(1,), dilations=(1, 2)),
     dict(dropout_rate=1.0),

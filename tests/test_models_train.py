@@ -74,7 +74,7 @@ def test_cross_entropy_ignores_unlabelled_pixels():
 def test_augment_keeps_shapes_ranges_and_label_set():
   images, labels = _toy_data(n=2)
   augment = functools.partial(train.augment, **dict(train.augment_kwargs(
-      train.TrainConfig(blur_prob=1.0, zoom_max=1.5, noise_max=0.05))))
+      train.TrainConfig(blur_prob=1.0, zoom_max=1.5, noise_min=0.0, noise_max=0.05))))
   x, y = jax.jit(augment)(jax.random.key(0), jnp.asarray(images, jnp.float32) / 255.0,
                           jnp.asarray(labels))
   assert x.shape == images.shape and y.shape == labels.shape and y.dtype == jnp.int32
@@ -142,6 +142,13 @@ def test_recipe_of_a_record_reproduces_its_settings(tmp_path):
   del record["train_config"]["blur_prob"], record["train_config"]["zoom_max"]
   path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
   args = train.parse_args(["--recipe", str(path)])
-  assert (args.blur_prob, args.zoom_max) == (0.0, 1.0)
+  assert (args.blur_prob, args.zoom_max, args.noise_min, args.sensing) == (0.0, 1.0, 0.02, "off")
+  # noise_max without noise_min: the level was drawn from [0, noise_max]; neither: fixed 0.02.
+  del record["train_config"]["noise_min"]
+  assert train.recipe_defaults({"config": config.to_dict(), "record": record})["noise_min"] == 0.0
+  del record["train_config"]["noise_max"]
+  record["data"]["sensing"] = "on"
+  defaults = train.recipe_defaults({"config": config.to_dict(), "record": record})
+  assert (defaults["noise_min"], defaults["noise_max"], defaults["sensing"]) == (0.02, 0.02, "on")
   with pytest.raises(ValueError, match="lacks field"):
     train.recipe_defaults({"config": config.to_dict(), "record": {}})
