@@ -366,18 +366,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                  help="also time MC sampling per frame for M = 1, 8, 32 at 120x160")
   p.add_argument("--json", default=None, help="write the results here as JSON")
   p.add_argument("--cache", default=None, help="folder to cache rendered views in")
+  p.add_argument("--sensing", choices=("on", "off"), default="on",
+                 help="render the views with the embedded world's view-dependent camera model "
+                      "(its default) or without it (the renderer before datasets ecb82f6)")
   args = p.parse_args(argv)
 
   from . import train  # The data helpers live with the training command.
   model, height, width = load_with_training_size(args.checkpoint, args.height, args.width)
   seed = args.seed if args.seed is not None else model.metadata.get("record", {}).get("seed", 0)
   key = jax.random.key(seed + 7)
-  results = {"checkpoint": args.checkpoint, "height": height, "width": width}
+  results = {"checkpoint": args.checkpoint, "height": height, "width": width,
+             "sensing": args.sensing}
   splits = {"train_heldout": ("train", seed + 10_000, 1.0),
             "test_shifted": ("test", seed + 20_000, args.shift)}
   for i, (name, (domain, split_seed, shift)) in enumerate(splits.items()):
     x, y = train.load_domain(domain, args.num_images, height=height, width=width,
-                             seed=split_seed, shift=shift, cache_dir=args.cache)
+                             seed=split_seed, shift=shift, cache_dir=args.cache,
+                             sensing=args.sensing == "on")
     res = evaluate_arrays(model.graphdef, model.params, x, y, key=jax.random.fold_in(key, i),
                           num_samples=args.num_samples, num_classes=model.config.num_classes)
     results[name] = res
