@@ -58,12 +58,6 @@ def data():
   return scene()
 
 
-@pytest.fixture(autouse=True)
-def strict_numerics():
-  with jax.debug_nans(True):
-    yield
-
-
 @functools.partial(jax.jit, static_argnames=("name", "objective"))
 def loss_and_grad(hp, frames, coords, labels, *, name="D+R", objective="cross_entropy"):
   def f(hp):
