@@ -274,7 +274,8 @@ def _cameras(camera: CameraArg, batch: Optional[int]):
 
 def _num_rules(rules: rules_base.FusionRule) -> int:
   leaves = jax.tree.leaves(rules.hparams)
-  if not leaves or any(np.ndim(x) != 1 for x in leaves):
+  # Leading axis = rules; per-class hyperparameters (SPEC rule 7) add a trailing (K,) axis.
+  if not leaves or any(np.ndim(x) not in (1, 2) for x in leaves):
     raise ValueError("rules must be a stack of rules with hyperparameters, e.g. "
                      "rules.stack([rules.robust(beta=b) for b in betas]) or rule_grid(...)")
   sizes = {np.shape(x)[0] for x in leaves}

@@ -94,6 +94,19 @@ def test_sweep_over_a_batch_has_rule_then_sequence_axes():
                                                                         dirichlet=False)))
 
 
+def test_sweep_over_per_class_rules_equals_one_rule_at_a_time():
+  rng = np.random.default_rng(5)
+  seqs = [sequence(rng, 2)]
+  frames, mask = batch.stack_sequences(seqs)
+  k = seqs[0].probs.shape[-1]
+  betas = [np.linspace(0.05, 0.9, k, dtype=np.float32), np.full(k, 0.3, np.float32)]
+  per_class = [jf.rules.robust(beta=b, dirichlet=False) for b in betas]
+  states = batch.fuse_sweep(frames, h.CAMERA, jf.rules.stack(per_class), capacity=CAPACITY,
+                            voxel_size=VOXEL, mask=mask)
+  for r, rule in enumerate(per_class):
+    assert_same(item(states, r, 0), sequential(seqs[0], rule))
+
+
 def test_bad_batches_raise():
   rng = np.random.default_rng(4)
   a, b = sequence(rng, 2), sequence(rng, 3)
