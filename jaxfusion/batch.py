@@ -272,7 +272,9 @@ def _cameras(camera: CameraArg, batch: Optional[int]):
   return camera_lib.Camera(*np.asarray(cameras, np.float32).T), True
 
 
-def _num_rules(rules: rules_base.FusionRule) -> int:
+def num_stacked_rules(rules: rules_base.FusionRule) -> int:
+  """R of a stack of rules: the common leading axis of its hyperparameter leaves (`(R,)`, or
+  `(R, K)` for per-class values). Raises ValueError for an unstacked rule or ragged lengths."""
   leaves = jax.tree.leaves(rules.hparams)
   # Leading axis = rules; per-class hyperparameters (SPEC rule 7) add a trailing (K,) axis.
   if not leaves or any(np.ndim(x) not in (1, 2) for x in leaves):
@@ -348,7 +350,7 @@ def fuse_sweep(frames: fusion.Frame, camera: CameraArg, rules: rules_base.Fusion
   """
   if not isinstance(rules, rules_base.FusionRule):
     raise TypeError(f"rules must be a stacked FusionRule; got {type(rules).__name__}")
-  num_rules = _num_rules(rules)
+  num_rules = num_stacked_rules(rules)
   num_classes = np.shape(frames.probs)[-1] if isinstance(frames, fusion.Frame) else None
   batch_dims = 2 if np.ndim(getattr(frames, "depth", None)) == 4 else 1
   mask = _check_batch_frames(frames, mask, rules, batch_dims=batch_dims,

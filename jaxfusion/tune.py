@@ -229,7 +229,7 @@ def sweep(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_labels,
     `soft_iou_loss_pooled` `(R,)`, the last two being exactly what `sequence_loss` optimises
     on the batch for each objective.
   """
-  num_rules = _num_stacked(rules)
+  num_rules = batch.num_stacked_rules(rules)
   batch_dims = 2 if np.ndim(frames.depth) == 4 else 1
   num_classes = np.shape(frames.probs)[-1]
   mask = batch._check_batch_frames(frames, mask, rules, batch_dims=batch_dims,  # pylint: disable=protected-access
@@ -272,19 +272,6 @@ def _summarise(out: dict) -> dict:
     out["soft_iou_loss_pooled"] = 1.0 - np.asarray(
         soft_miou({k: v.sum(axis=1) for k, v in out["soft"].items()}))
   return out
-
-
-def _num_stacked(rules: rules_lib.FusionRule) -> int:
-  """R of a stack of rules: the common leading axis of its leaves (`(R,)` or per-class
-  `(R, K)`)."""
-  leaves = jax.tree.leaves(rules.hparams)
-  if not leaves or any(np.ndim(x) not in (1, 2) for x in leaves):
-    raise ValueError("rules must be a stack of rules with hyperparameters, e.g. "
-                     "rules.stack([rules.robust(beta=b) for b in betas]) or rule_grid(...)")
-  sizes = {np.shape(x)[0] for x in leaves}
-  if len(sizes) != 1:
-    raise ValueError(f"stacked hyperparameters disagree in length: {sorted(sizes)}")
-  return sizes.pop()
 
 
 def sweep_beta(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_labels, *,
