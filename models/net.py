@@ -45,6 +45,10 @@ class SegNetConfig:
     aspp_rates: dilation rates of the 3×3 ASPP branches (besides the 1×1 and pooling branches).
     dropout_rate: probability of zeroing an activation; 0.3 in the paper.
     norm_groups: GroupNorm groups; must divide every width.
+    input_norm: standardise each image per colour channel (zero mean, unit standard deviation
+      over its pixels) before the stem, so a global colour cast, exposure or contrast change
+      of the whole frame does not reach the network. False keeps the raw [0, 1] input (the
+      shipped net).
   """
 
   num_classes: int = 7
@@ -57,6 +61,7 @@ class SegNetConfig:
   aspp_rates: tuple[int, ...] = (2, 4, 6)
   dropout_rate: float = 0.3
   norm_groups: int = 8
+  input_norm: bool = False
 
   def __post_init__(self):
     if self.num_classes < 2:
@@ -215,6 +220,8 @@ class SegNet(nnx.Module):
     keys = (jax.random.split(key, self.config.num_dropout_layers) if not deterministic
             else [None] * self.config.num_dropout_layers)
     height, width = images.shape[1:3]
+    if self.config.input_norm:
+      images = standardize(images)
     x = self.stem(images)
     for i, block in enumerate(self.blocks):
       x = self.dropout(block(x), deterministic=deterministic, rngs=keys[i])
@@ -222,6 +229,22 @@ class SegNet(nnx.Module):
     logits = self.classifier(self.head(x))
     return jax.image.resize(
         logits, (logits.shape[0], height, width, logits.shape[-1]), method="bilinear")
+
+
+def standardize(images: jax.Array, eps: float = 0.02) -> jax.Array:
+  """Per-image, per-channel standardisation: `(x − mean) / max(std, eps)`.
+
+  Args:
+    images: `(B, H, W, C)` float32.
+    eps: floor of the standard deviation, so a flat (e.g. all-black) image stays finite.
+
+  Returns:
+    `(B, H, W, C)` float32 with zero mean and (unless flat) unit standard deviation per image
+    and channel.
+  """
+  mean = jnp.mean(images, axis=(1, 2), keepdims=True)
+  std = jnp.sqrt(jnp.mean(jnp.square(images - mean), axis=(1, 2), keepdims=True))
+  return (images - mean) / jnp.maximum(std, eps)
 
 
 def init(config: SegNetConfig, *, key: jax.Array) -> tuple[nnx.GraphDef, nnx.State]:

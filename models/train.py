@@ -52,6 +52,8 @@ class TrainConfig(NamedTuple):
   noise_min: float = 0.02
   noise_max: float = 0.02
   zoom_max: float = 1.0
+  region_color_prob: float = 0.0
+  texture_prob: float = 0.0
 
 
 def class_weights(labels: np.ndarray, num_classes: int, *, power: float = 0.5,
@@ -144,9 +146,73 @@ def random_zoom(key: jax.Array, image: jax.Array, label: jax.Array, max_zoom: fl
   return image, label
 
 
+def region_recolor(key: jax.Array, image: jax.Array, label: jax.Array, *, num_classes: int,
+                   color_prob: float, texture_prob: float) -> jax.Array:
+  """Recolours and retextures each region of one image independently (domain randomisation).
+
+  Global colour jitter keeps the colour *relations* of a scene (a dark chair stays darker than
+  its floor), so a net can still learn "this palette means chair". Here the image is cut into
+  regions, each class's pixels on either side of a random straight line, and each region gets
+  its own transform: a hue rotation, per-channel gains and, sometimes, an inverted brightness
+  (with probability `color_prob` per image), and, independently per region with probability
+  `texture_prob`, a multiplicative pattern (stripes, checks or waves at a random frequency,
+  orientation and contrast) in image coordinates. Nothing is taken from any rendered domain:
+  the transforms are generic, and the labels are only used to find the regions.
+
+  Args:
+    key: PRNG key.
+    image: `(H, W, 3)` float32 in [0, 1].
+    label: `(H, W)` int32; values outside `[0, num_classes)` are treated as class 0.
+    num_classes: K.
+    color_prob: probability that the image's regions are recoloured.
+    texture_prob: probability that a region gets a pattern.
+
+  Returns:
+    `(H, W, 3)` float32 in [0, 1].
+  """
+  h, w = label.shape
+  (k_on, k_phi, k_cut, k_theta, k_gain, k_inv, k_tex_on, k_freq, k_angle, k_kind,
+   k_con, k_phase) = jax.random.split(key, 12)
+  num_regions = 2 * num_classes
+  yy, xx = jnp.meshgrid(jnp.linspace(-1.0, 1.0, h), jnp.linspace(-1.0, 1.0, w) * (w / h),
+                        indexing="ij")
+  phi = jax.random.uniform(k_phi, (), minval=0.0, maxval=2 * jnp.pi)
+  cut = jax.random.uniform(k_cut, (), minval=-0.7, maxval=0.7)
+  side = (xx * jnp.cos(phi) + yy * jnp.sin(phi) > cut).astype(jnp.int32)
+  cls = jnp.where((label >= 0) & (label < num_classes), label, 0)
+  region = cls + num_classes * side
+  if color_prob > 0:
+    theta = jax.random.uniform(k_theta, (num_regions,), minval=-jnp.pi, maxval=jnp.pi)
+    mats = jax.vmap(_hue_rotation)(theta)
+    gain = jnp.exp(jax.random.uniform(k_gain, (num_regions, 3), minval=-0.4, maxval=0.4))
+    invert = jax.random.bernoulli(k_inv, 0.2, (num_regions,))
+    out = jnp.einsum("hwij,hwj->hwi", mats[region], image) * gain[region]
+    out = jnp.clip(out, 0.0, 1.0)
+    out = jnp.where(invert[region][..., None], 1.0 - out, out)
+    image = jnp.where(jax.random.bernoulli(k_on, color_prob), out, image)
+  if texture_prob > 0:
+    on = jax.random.bernoulli(k_tex_on, texture_prob, (num_regions,))
+    freq = jnp.exp(jax.random.uniform(k_freq, (num_regions,), minval=jnp.log(2.0),
+                                      maxval=jnp.log(20.0)))[region]  # cycles per image height
+    angle = jax.random.uniform(k_angle, (num_regions,), minval=0.0, maxval=jnp.pi)[region]
+    phase = jax.random.uniform(k_phase, (num_regions,), minval=0.0, maxval=2 * jnp.pi)[region]
+    kind = jax.random.randint(k_kind, (num_regions,), 0, 3)[region]
+    u = jnp.pi * freq * (xx * jnp.cos(angle) + yy * jnp.sin(angle)) + phase
+    v = jnp.pi * freq * (-xx * jnp.sin(angle) + yy * jnp.cos(angle))
+    stripes = (jnp.sin(u) > 0).astype(jnp.float32)
+    checks = ((jnp.sin(u) > 0) ^ (jnp.sin(v) > 0)).astype(jnp.float32)
+    waves = 0.5 + 0.5 * jnp.sin(u + 1.5 * jnp.sin(0.7 * v))
+    pattern = jnp.select([kind == 0, kind == 1], [stripes, checks], waves)
+    contrast = jnp.where(on, jax.random.uniform(k_con, (num_regions,), minval=0.15,
+                                                maxval=0.6), 0.0)[region]
+    image = image * (1.0 - contrast * pattern)[..., None]
+  return image
+
+
 def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
             strength: float = 1.0, blur_prob: float = 0.0, blur_max_sigma: float = 1.5,
-            noise_min: float = 0.02, noise_max: float = 0.02, zoom_max: float = 1.0
+            noise_min: float = 0.02, noise_max: float = 0.02, zoom_max: float = 1.0,
+            region_color_prob: float = 0.0, texture_prob: float = 0.0, num_classes: int = 7
             ) -> tuple[jax.Array, jax.Array]:
   """Random flip, shifted crop, zoom, colour randomisation, blur and noise, per image.
 
@@ -165,6 +231,10 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
     noise_max: largest one; the standard deviation is drawn uniformly in
       `[noise_min, noise_max]` per image (fixed when they are equal).
     zoom_max: largest zoom-in factor (objects seen closer); 1 disables it.
+    region_color_prob: probability per image of recolouring each region on its own
+      (`region_recolor`); 0 disables it.
+    texture_prob: probability per region of a random multiplicative pattern; 0 disables it.
+    num_classes: K, to find the regions (labels outside `[0, K)` count as class 0).
 
   Returns:
     Augmented `(images, labels)` of the same shapes and dtypes.
@@ -191,6 +261,11 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
     label = jax.lax.dynamic_slice(label_p, (dy, dx), (h, w))
     if zoom_max > 1.0:
       image, label = random_zoom(k_zoom, image, label, zoom_max)
+    if region_color_prob > 0 or texture_prob > 0:
+      # Its own key stream, so recipes without it keep their random numbers bit for bit.
+      image = region_recolor(jax.random.fold_in(k, 1_000_003), image, label,
+                             num_classes=num_classes, color_prob=region_color_prob,
+                             texture_prob=texture_prob)
     if strength > 0:
       # Colour randomisation so that the net leans on shape and layout rather than on the
       # training palette: hue rotation, channel shuffles, grey-scale, gamma, saturation,
@@ -279,7 +354,8 @@ def train_step(graphdef: nnx.GraphDef, optimizer: optax.GradientTransformation,
     `(params, opt_state, loss)`.
   """
   k_aug, k_drop = jax.random.split(key)
-  x, y = augment(k_aug, images.astype(jnp.float32) / 255.0, labels, **dict(augmentation))
+  x, y = augment(k_aug, images.astype(jnp.float32) / 255.0, labels, num_classes=weights.shape[0],
+                 **dict(augmentation))
 
   def loss_fn(p):
     logits = net.apply(graphdef, p, k_drop, x, deterministic=False)
@@ -295,7 +371,9 @@ def augment_kwargs(cfg: TrainConfig) -> tuple[tuple[str, float], ...]:
   return (("strength", float(cfg.color_strength)), ("blur_prob", float(cfg.blur_prob)),
           ("blur_max_sigma", float(cfg.blur_max_sigma)), ("noise_min", float(cfg.noise_min)),
           ("noise_max", float(cfg.noise_max)),
-          ("zoom_max", float(cfg.zoom_max)))
+          ("zoom_max", float(cfg.zoom_max)),
+          ("region_color_prob", float(cfg.region_color_prob)),
+          ("texture_prob", float(cfg.texture_prob)))
 
 
 def fit(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarray, labels: np.ndarray, *,
@@ -459,6 +537,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                       "(sample_views' default since datasets ecb82f6) or without it (the "
                       "renderer the shipped weights were trained with)")
   p.add_argument("--zoom-max", type=float, default=TrainConfig().zoom_max)
+  p.add_argument("--region-color-prob", type=float, default=TrainConfig().region_color_prob,
+                 help="probability per image of recolouring each class region on its own")
+  p.add_argument("--texture-prob", type=float, default=TrainConfig().texture_prob,
+                 help="probability per region of a random stripe/check/wave pattern")
+  p.add_argument("--input-norm", action=argparse.BooleanOptionalAction,
+                 default=net.SegNetConfig.input_norm,
+                 help="standardise each image per channel inside the network")
   p.add_argument("--save-every", type=int, default=250,
                  help="steps between partial checkpoints (<out>.partial.msgpack); 0 = never")
   p.add_argument("--height", type=int, default=96)
@@ -523,6 +608,8 @@ def recipe_defaults(recipe: dict[str, Any]) -> dict[str, Any]:
   # Augmentation fields added after the first records; absent means "off" (the old recipe).
   defaults.update(blur_prob=tc.get("blur_prob", 0.0), blur_max_sigma=tc.get("blur_max_sigma", 1.5),
                   noise_max=tc.get("noise_max", 0.02), zoom_max=tc.get("zoom_max", 1.0),
+                  region_color_prob=tc.get("region_color_prob", 0.0),
+                  texture_prob=tc.get("texture_prob", 0.0),
                   sensing=data.get("sensing", "off"))
   # A record with noise_max but no noise_min drew the level from [0, noise_max].
   defaults["noise_min"] = tc.get("noise_min", 0.0 if "noise_max" in tc else 0.02)
@@ -537,6 +624,7 @@ def recipe_defaults(recipe: dict[str, Any]) -> dict[str, Any]:
       blocks_per_stage=config.blocks_per_stage, aspp_width=config.aspp_width,
       aspp_rates=",".join(map(str, config.aspp_rates)), dropout=config.dropout_rate)
   defaults["norm_groups"] = config.norm_groups
+  defaults["input_norm"] = config.input_norm
   return defaults
 
 
@@ -552,13 +640,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
       strides=ints(args.strides), dilations=ints(args.dilations),
       blocks_per_stage=args.blocks_per_stage, aspp_width=args.aspp_width,
       aspp_rates=ints(args.aspp_rates), dropout_rate=args.dropout,
-      norm_groups=args.norm_groups)
+      norm_groups=args.norm_groups, input_norm=args.input_norm)
   cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
                     warmup_steps=args.warmup, weight_decay=args.weight_decay,
                     color_strength=args.color_strength, blur_prob=args.blur_prob,
                     blur_max_sigma=args.blur_max_sigma, noise_min=args.noise_min,
                     noise_max=args.noise_max,
-                    zoom_max=args.zoom_max)
+                    zoom_max=args.zoom_max, region_color_prob=args.region_color_prob,
+                    texture_prob=args.texture_prob)
   size = dict(height=args.height, width=args.width, cache_dir=args.cache,
               sensing=args.sensing == "on")
 

@@ -153,3 +153,32 @@ def test_mc_samples_rejects_batches_and_bad_m(tiny, image):
     sampling.mc_samples(graphdef, params, jax.random.key(0), image[None], num_samples=M)
   with pytest.raises(ValueError, match="num_samples"):
     sampling.mc_samples(graphdef, params, jax.random.key(0), image, num_samples=0)
+
+
+def test_standardize_gives_zero_mean_unit_std_and_stays_finite_on_flat_images():
+  rng = np.random.default_rng(1)
+  x = jnp.asarray(rng.uniform(0, 1, (2, 8, 10, 3)), jnp.float32)
+  z = np.asarray(net.standardize(x))
+  np.testing.assert_allclose(z.mean(axis=(1, 2)), 0.0, atol=1e-5)
+  np.testing.assert_allclose(z.std(axis=(1, 2)), 1.0, atol=1e-4)
+  flat = np.asarray(net.standardize(jnp.zeros((1, 4, 4, 3))))
+  assert np.all(flat == 0.0)
+
+
+def test_input_norm_makes_the_net_blind_to_a_global_colour_cast(image):
+  config = dataclasses.replace(net.tiny_config(K), input_norm=True)
+  graphdef, params = net.init(config, key=jax.random.key(0))
+  x = jnp.asarray(image, jnp.float32)[None] / 255.0
+  cast = x * jnp.array([0.6, 0.8, 1.1]) + jnp.array([0.1, 0.0, -0.05])  # per-channel affine
+  a = net.apply(graphdef, params, None, x, deterministic=True)
+  b = net.apply(graphdef, params, None, cast, deterministic=True)
+  np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-4)
+  # Without it the same cast changes the logits.
+  graphdef0, params0 = net.init(net.tiny_config(K), key=jax.random.key(0))
+  a0 = net.apply(graphdef0, params0, None, x, deterministic=True)
+  b0 = net.apply(graphdef0, params0, None, cast, deterministic=True)
+  assert float(jnp.max(jnp.abs(a0 - b0))) > 1e-2
+  # Old configs without the field load as input_norm=False.
+  old = net.tiny_config(K).to_dict()
+  del old["input_norm"]
+  assert net.SegNetConfig.from_dict(old).input_norm is False

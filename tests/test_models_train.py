@@ -1,5 +1,6 @@
 """Training pieces: a few steps lower the loss; class weights, augmentation, masked loss."""
 
+import dataclasses
 import functools
 import json
 
@@ -152,3 +153,82 @@ def test_recipe_of_a_record_reproduces_its_settings(tmp_path):
   assert (defaults["noise_min"], defaults["noise_max"], defaults["sensing"]) == (0.02, 0.02, "on")
   with pytest.raises(ValueError, match="lacks field"):
     train.recipe_defaults({"config": config.to_dict(), "record": {}})
+
+
+def _region_image(seed=0):
+  """A 24×32 image of flat colours with a 3-class label map (blocks of 8 px)."""
+  rng = np.random.default_rng(seed)
+  labels = rng.integers(0, K, (3, 4)).repeat(8, 0).repeat(8, 1).astype(np.int32)
+  image = rng.uniform(0.2, 0.8, (K, 3))[labels].astype(np.float32)
+  return jnp.asarray(image), jnp.asarray(labels)
+
+
+def test_region_recolor_is_identity_when_off_and_stays_in_range():
+  image, labels = _region_image()
+  same = train.region_recolor(jax.random.key(0), image, labels, num_classes=K, color_prob=0.0,
+                              texture_prob=0.0)
+  np.testing.assert_array_equal(np.asarray(same), np.asarray(image))
+  for seed in range(5):
+    out = np.asarray(train.region_recolor(jax.random.key(seed), image, labels, num_classes=K,
+                                          color_prob=1.0, texture_prob=1.0))
+    assert out.shape == image.shape and np.all(np.isfinite(out))
+    assert out.min() >= 0.0 and out.max() <= 1.0
+
+
+def test_region_recolor_gives_each_region_its_own_colour_transform():
+  # Every class has the same colour; after recolouring, a colour maps to one output per
+  # region (class × side of the cut), and different classes almost surely differ.
+  image, labels = _region_image()
+  image = jnp.full_like(image, 0.5).at[..., 0].set(0.7)
+  out = np.asarray(train.region_recolor(jax.random.key(3), image, labels, num_classes=K,
+                                        color_prob=1.0, texture_prob=0.0))
+  distinct = {tuple(np.round(c, 5)) for c in out.reshape(-1, 3)}
+  assert 2 <= len(distinct) <= 2 * K  # at most one colour per region
+  for k in range(K):
+    in_class = {tuple(np.round(c, 5)) for c in out[np.asarray(labels) == k]}
+    assert len(in_class) <= 2  # one per side of the cut
+  # Labels outside [0, K) are treated as background (class 0), not an index error.
+  odd = labels.at[0, 0].set(-1)
+  out = train.region_recolor(jax.random.key(3), image, odd, num_classes=K, color_prob=1.0,
+                             texture_prob=0.0)
+  assert np.all(np.isfinite(np.asarray(out)))
+
+
+def test_region_texture_only_darkens_and_changes_some_pixels():
+  image, labels = _region_image(1)
+  out = np.asarray(train.region_recolor(jax.random.key(4), image, labels, num_classes=K,
+                                        color_prob=0.0, texture_prob=1.0))
+  assert np.all(out <= np.asarray(image) + 1e-7)
+  changed = np.any(np.abs(out - np.asarray(image)) > 1e-3, axis=-1)
+  assert 0.05 < changed.mean() < 1.0  # patterns have dark and untouched parts
+
+
+def test_augment_with_region_randomisation_keeps_labels_and_range():
+  images, labels = _toy_data(n=4, size=16)
+  x = jnp.asarray(images, jnp.float32) / 255.0
+  out_x, out_y = train.augment(jax.random.key(0), x, jnp.asarray(labels), region_color_prob=1.0,
+                               texture_prob=0.5, num_classes=K)
+  base_x, base_y = train.augment(jax.random.key(0), x, jnp.asarray(labels), num_classes=K)
+  # Geometry uses the same keys either way: the labels are identical, the colours are not.
+  np.testing.assert_array_equal(np.asarray(out_y), np.asarray(base_y))
+  assert not np.allclose(np.asarray(out_x), np.asarray(base_x))
+  assert float(out_x.min()) >= 0.0 and float(out_x.max()) <= 1.0
+
+
+def test_recipe_carries_region_randomisation_and_input_norm(tmp_path):
+  config = dataclasses.replace(net.tiny_config(7), input_norm=True)
+  cfg = train.TrainConfig(steps=7, region_color_prob=0.5, texture_prob=0.25)
+  record = {"seed": 1, "train_config": cfg._asdict(),
+            "data": {"height": 24, "width": 32, "train": {"num_images": 9},
+                     "test": {"num_images": 2, "shift": 1.0}}}
+  path = tmp_path / "segnet.json"
+  path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
+  args = train.parse_args(["--recipe", str(path)])
+  assert (args.region_color_prob, args.texture_prob, args.input_norm) == (0.5, 0.25, True)
+  # Old records (no such fields) mean off.
+  del record["train_config"]["region_color_prob"], record["train_config"]["texture_prob"]
+  old = net.tiny_config(7).to_dict()
+  del old["input_norm"]
+  defaults = train.recipe_defaults({"config": old, "record": record})
+  assert (defaults["region_color_prob"], defaults["texture_prob"],
+          defaults["input_norm"]) == (0.0, 0.0, False)
