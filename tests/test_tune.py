@@ -46,7 +46,8 @@ def scene(seed=0, num_frames=4, height=8, width=10):
     depths.append(depth)
     poses.append(T)
   labels = np.stack(labels)
-  probs, var = tune.simulate_predictions(jax.random.PRNGKey(seed), labels, num_classes=K,
+  # An RBG key: XLA on CPU compiles threefry's random ops in seconds each, rbg in a fraction.
+  probs, var = tune.simulate_predictions(jax.random.key(seed, impl="rbg"), labels, num_classes=K,
                                          num_samples=4, outlier_rate=0.15)
   frames = jf.Frame(np.stack(depths), np.stack(poses), np.asarray(probs), np.asarray(var))
   coords = np.unique(np.concatenate(keys), axis=0)
@@ -76,6 +77,11 @@ def with_empty_and_padding(coords, labels):
 
 def f32(hp):
   return {k: jnp.float32(v) for k, v in hp.items()}
+
+
+# The references below score maps with these, jitted (eagerly they dispatch op by op).
+calibration_loss = jax.jit(tune.calibration_loss)
+soft_iou_loss = jax.jit(tune.soft_iou_loss)
 
 
 def test_gradients_match_finite_differences(data):
@@ -123,7 +129,7 @@ def test_sweep_equals_sequential_maps_scored_with_metrics(data):
     assert out["miou"][r] == pytest.approx(ref["miou"])
     assert out["accuracy"][r] == pytest.approx(ref["accuracy"])
     assert out["loss"][r] == pytest.approx(
-        float(tune.calibration_loss(state, coords, labels)), rel=1e-5)
+        float(calibration_loss(state, coords, labels)), rel=1e-5)
   assert out["dropped"].sum() == 0
 
 
@@ -287,7 +293,7 @@ def test_evaluate_rules_mixes_scalar_and_per_class_rules_exactly(two):
       ref = metrics.evaluate_map(jf.read_map(state), {"coords": coords, "labels": labels}, K)
       np.testing.assert_array_equal(out["confusion"][b], ref["confusion"])
       assert out["soft_iou_loss"][b] == pytest.approx(
-          float(tune.soft_iou_loss(state, coords, labels)), rel=1e-5)
+          float(soft_iou_loss(state, coords, labels)), rel=1e-5)
 
 
 def test_protocol_and_comparison_commands(two, tmp_path, monkeypatch):
