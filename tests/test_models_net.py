@@ -1,6 +1,7 @@
 """The segmentation net and its MC-dropout sampling: shapes, keys, determinism, bad input."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +19,20 @@ M = 4  # One M for all tests: each distinct M is a separate compilation.
 def tiny():
   graphdef, params = net.init(net.tiny_config(K), key=jax.random.key(0))
   return graphdef, params
+
+
+def with_config(config, tiny):
+  """`(graphdef, params)` of `config`, a variant of `tiny_config(K)` whose parameters have the
+  same structure (dropout rate, input standardisation): the tiny net's weights under the
+  variant's graph, so that no second initialiser has to compile."""
+  graphdef, abstract = net.abstract_params(config)
+  params = tiny[1]
+  assert jax.tree_util.tree_structure(abstract) == jax.tree_util.tree_structure(params)
+  return graphdef, params
+
+
+# Dropout off, one compiled forward pass per graph.
+apply_deterministic = jax.jit(functools.partial(net.apply, deterministic=True), static_argnums=0)
 
 
 @pytest.fixture(scope="module")
@@ -96,9 +111,9 @@ def test_dropout_off_is_identical_for_every_key(tiny, image):
                              np.asarray(a), atol=1e-5)
 
 
-def test_zero_dropout_rate_makes_mc_samples_identical(image):
+def test_zero_dropout_rate_makes_mc_samples_identical(tiny, image):
   config = dataclasses.replace(net.tiny_config(K), dropout_rate=0.0)
-  graphdef, params = net.init(config, key=jax.random.key(0))
+  graphdef, params = with_config(config, tiny)
   samples = sampling.mc_samples(graphdef, params, jax.random.key(3), image, num_samples=M)
   np.testing.assert_array_equal(np.asarray(samples[0]), np.asarray(samples[1]))
 
@@ -165,18 +180,18 @@ def test_standardize_gives_zero_mean_unit_std_and_stays_finite_on_flat_images():
   assert np.all(flat == 0.0)
 
 
-def test_input_norm_makes_the_net_blind_to_a_global_colour_cast(image):
+def test_input_norm_makes_the_net_blind_to_a_global_colour_cast(tiny, image):
   config = dataclasses.replace(net.tiny_config(K), input_norm=True)
-  graphdef, params = net.init(config, key=jax.random.key(0))
+  graphdef, params = with_config(config, tiny)
   x = jnp.asarray(image, jnp.float32)[None] / 255.0
   cast = x * jnp.array([0.6, 0.8, 1.1]) + jnp.array([0.1, 0.0, -0.05])  # per-channel affine
-  a = net.apply(graphdef, params, None, x, deterministic=True)
-  b = net.apply(graphdef, params, None, cast, deterministic=True)
+  a = apply_deterministic(graphdef, params, None, x)
+  b = apply_deterministic(graphdef, params, None, cast)
   np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-4)
   # Without it the same cast changes the logits.
-  graphdef0, params0 = net.init(net.tiny_config(K), key=jax.random.key(0))
-  a0 = net.apply(graphdef0, params0, None, x, deterministic=True)
-  b0 = net.apply(graphdef0, params0, None, cast, deterministic=True)
+  graphdef0, params0 = tiny
+  a0 = apply_deterministic(graphdef0, params0, None, x)
+  b0 = apply_deterministic(graphdef0, params0, None, cast)
   assert float(jnp.max(jnp.abs(a0 - b0))) > 1e-2
   # Old configs without the field load as input_norm=False.
   old = net.tiny_config(K).to_dict()
