@@ -93,8 +93,14 @@ def test_tiled_cast_equals_casting_against_everything(env, trajectory):
   world = synthetic.make_scene(env, seed=1)
   cam = synthetic.default_camera(H, W)
   packed = raycast.pack(world.primitives)
-  for T in trajectories.trajectory(world.layout.room, trajectory, 3):
-    tiles = raycast.tile_lists(packed, T, cam, height=H, width=W, tile=8)
+  poses = trajectories.trajectory(world.layout.room, trajectory, 3)
+  # The longest lists over the poses, as a sequence renderer passes them: one compilation.
+  sizes = np.max([raycast.list_sizes(raycast.tile_lists(packed, T, cam, height=H, width=W,
+                                                         tile=8)) for T in poses], axis=0)
+  for T in poses:
+    tiles = raycast.tile_lists(packed, T, cam, height=H, width=W, tile=8,
+                               min_sizes=tuple(int(x) for x in sizes))
+    assert raycast.list_sizes(tiles) == tuple(int(x) for x in sizes)
     assert raycast.list_sizes(tiles)[0] < packed.boxes.index.shape[0]  # tiles do cull
     a = raycast.cast(packed, T, cam, height=H, width=W)
     b = raycast.cast(packed, T, cam, height=H, width=W, tiles=tiles, tile=8)
