@@ -16,8 +16,9 @@ from jaxfusion import experiments
 from jaxfusion import stats
 from jaxfusion import study
 
-# Shapes shared with tests/test_experiments.py so that compiled fusion steps are reused.
-H, W, CAPACITY = 24, 32, 2**14
+# Shapes shared with tests/test_experiments.py (the capacity of its `demo` run) and
+# tests/test_viewer_scene_data.py, so that compiled fusion steps are reused.
+H, W, CAPACITY = 24, 32, 2**17
 K = 7
 
 
