@@ -6,6 +6,7 @@ camera trajectory as frustums. Switching maps replaces the voxels only, so the c
 where the user left it. What is drawn is computed by `scene_data`; this module only shows it.
 """
 
+import signal
 import threading
 import time
 from typing import Optional, Sequence
@@ -211,6 +212,13 @@ def serve(paths: Sequence[str], *, host: str = "127.0.0.1", port: int = 8080,
   print(f"viewing {len(maps)} map(s) of {sequences} sequence(s) at {viewer.url}  "
         "(Ctrl-C stops)", flush=True)
   start = time.monotonic()
+  # A process started with SIGINT ignored (a background job of a non-interactive shell, or a
+  # parent that ignores it) inherits that, and Python then installs no KeyboardInterrupt
+  # handler: Ctrl-C / `kill -INT` would be lost and the server would run forever. The viewer
+  # promises that Ctrl-C stops it, so it takes SIGINT for as long as it serves.
+  previous = None
+  if threading.current_thread() is threading.main_thread():
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
   try:
     while duration is None or time.monotonic() - start < duration:
       time.sleep(0.2)
@@ -218,4 +226,6 @@ def serve(paths: Sequence[str], *, host: str = "127.0.0.1", port: int = 8080,
     pass
   finally:
     viewer.stop()
+    if previous is not None:
+      signal.signal(signal.SIGINT, previous)
   print("viewer stopped", flush=True)
