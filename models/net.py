@@ -6,9 +6,10 @@ blocks (GroupNorm, so the model has no batch statistics and is a pure function o
 parameters), a dropout layer after every block, an atrous spatial pyramid pooling (ASPP) head
 and bilinear upsampling of the logits to the input size. Width, depth, strides, dilations and
 ASPP rates are configuration (`SegNetConfig`), never constants; checkpoints store their own.
-The default (493 k parameters) is the shipped architecture; `resnet18_config()` is the deeper
-ResNet-18-like variant (2.9 M parameters) that a 45-minute CPU budget could not train well
-(see models/weights/MODEL_CARD.md).
+The default (493 k parameters) is the first shipped net's architecture (`segnet_v1`); the
+default shipped net is wider (`models/weights/segnet.json`, 980 k parameters, `input_norm`);
+`resnet18_config()` is the deeper ResNet-18-like variant (2.9 M parameters) that a 45-minute
+CPU budget could not train well (see models/weights/MODEL_CARD.md).
 
 Dropout draws its mask from a key passed at call time, so the module holds no RNG state:
 `nnx.split(model)` yields only `nnx.Param`s and `apply` is a pure function of
@@ -48,7 +49,7 @@ class SegNetConfig:
     input_norm: standardise each image per colour channel (zero mean, unit standard deviation
       over its pixels) before the stem, so a global colour cast, exposure or contrast change
       of the whole frame does not reach the network. False keeps the raw [0, 1] input (the
-      shipped net).
+      first shipped net, segnet_v1; the default shipped net uses True).
   """
 
   num_classes: int = 7

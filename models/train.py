@@ -242,7 +242,7 @@ def augment(key: jax.Array, images: jax.Array, labels: jax.Array, *,
 
   def one(k, image, label):
     # 14 keys when the zoom, blur and noise-level draws are all off: bit-identical to the
-    # recipe of the shipped weights; 18 when any is on.
+    # recipe of the first shipped weights (segnet_v1); 18 when any is on.
     extra = zoom_max > 1.0 or blur_prob > 0 or noise_min != noise_max
     keys = jax.random.split(k, 18 if extra else 14)
     (k_flip, k_dx, k_dy, k_gain, k_bright, k_con, k_sat, k_noise, k_hue, k_hue_on, k_perm,
@@ -518,7 +518,10 @@ def dataset_version() -> str:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   p = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n")[0])
-  p.add_argument("--out", default=str(checkpoint.PRETRAINED_PATH), help="checkpoint path")
+  p.add_argument("--out", default="outputs/segnet.msgpack",
+                 help="checkpoint path (default outputs/segnet.msgpack: a run never overwrites the "
+                      "packaged weights unless asked to; `--recipe models/weights/segnet.json` "
+                      "re-creates them)")
   p.add_argument("--quick", action="store_true",
                  help="a tiny run (minutes): fewer images and steps; for smoke tests")
   p.add_argument("--steps", type=int, default=None)

@@ -3,6 +3,7 @@
 import dataclasses
 import functools
 import json
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -153,6 +154,22 @@ def test_recipe_of_a_record_reproduces_its_settings(tmp_path):
   assert (defaults["noise_min"], defaults["noise_max"], defaults["sensing"]) == (0.02, 0.02, "on")
   with pytest.raises(ValueError, match="lacks field"):
     train.recipe_defaults({"config": config.to_dict(), "record": {}})
+
+
+def test_shipped_recipe_replays_the_default_net_and_never_overwrites_it():
+  from models import checkpoint
+  record = json.loads((checkpoint.WEIGHTS_DIR / "segnet.json").read_text())
+  args = train.parse_args(["--recipe", str(checkpoint.WEIGHTS_DIR / "segnet.json")])
+  config, cfg = record["config"], record["record"]["train_config"]
+  assert (args.stem_width, args.widths, args.aspp_width, args.input_norm) == (
+      config["stem_width"], ",".join(map(str, config["widths"])), config["aspp_width"], True)
+  assert (args.steps, args.num_train, args.warmup, args.region_color_prob, args.texture_prob) == (
+      cfg["steps"], record["record"]["data"]["train"]["num_images"], cfg["warmup_steps"],
+      cfg["region_color_prob"], cfg["texture_prob"])
+  # A training run writes elsewhere unless told to replace the packaged weights.
+  for argv in ([], ["--recipe", str(checkpoint.WEIGHTS_DIR / "segnet.json")]):
+    out = train.parse_args(argv).out
+    assert pathlib.Path(out).resolve() != checkpoint.PRETRAINED_PATH.resolve(), out
 
 
 def _rbg(seed):
