@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from models import net, train
+from models import checkpoint, net, train
 
 K = 3
 
@@ -157,9 +157,9 @@ def test_recipe_of_a_record_reproduces_its_settings(tmp_path):
 
 
 def test_shipped_recipe_replays_the_default_net_and_never_overwrites_it():
-  from models import checkpoint
-  record = json.loads((checkpoint.WEIGHTS_DIR / "segnet.json").read_text())
-  args = train.parse_args(["--recipe", str(checkpoint.WEIGHTS_DIR / "segnet.json")])
+  recipe = checkpoint.WEIGHTS_DIR / "segnet.json"
+  record = json.loads(recipe.read_text())
+  args = train.parse_args(["--recipe", str(recipe)])
   config, cfg = record["config"], record["record"]["train_config"]
   assert (args.stem_width, args.widths, args.aspp_width, args.input_norm) == (
       config["stem_width"], ",".join(map(str, config["widths"])), config["aspp_width"], True)
@@ -167,7 +167,7 @@ def test_shipped_recipe_replays_the_default_net_and_never_overwrites_it():
       cfg["steps"], record["record"]["data"]["train"]["num_images"], cfg["warmup_steps"],
       cfg["region_color_prob"], cfg["texture_prob"])
   # A training run writes elsewhere unless told to replace the packaged weights.
-  for argv in ([], ["--recipe", str(checkpoint.WEIGHTS_DIR / "segnet.json")]):
+  for argv in ([], ["--recipe", str(recipe)]):
     out = train.parse_args(argv).out
     assert pathlib.Path(out).resolve() != checkpoint.PRETRAINED_PATH.resolve(), out
 
