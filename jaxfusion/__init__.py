@@ -2,10 +2,16 @@
 
 The pipeline: camera geometry → spatial hash → map state → fusion rules → `fuse_frame` →
 readout → metrics. Batches, sweeps and tuning build on it (`batch`, `tune`); the synthetic
-world and real-data readers live in `jaxfusion.datasets`. See README.md and SPEC.md.
+world and real-data readers live in `jaxfusion.datasets`, the simulated front end in
+`jaxfusion.simulation`, map files in `jaxfusion.io`. The equations are in docs/equations.md.
+
+This package is the library. The application (commands, studies, figures, the viewer) is
+`jaxfusion.lab`, which this package never imports.
 """
 
 from jaxfusion import batch
+from jaxfusion import datasets
+from jaxfusion import io
 from jaxfusion import metrics
 from jaxfusion import rules
 from jaxfusion import sources
@@ -31,14 +37,12 @@ from jaxfusion.state import map_stats
 from jaxfusion.tune import calibration_loss
 from jaxfusion.tune import sweep_beta
 from jaxfusion.tune import tune_hparams
-# Last: the datasets' ground truth is computed with the engine imported above.
-from jaxfusion import datasets  # pylint: disable=g-bad-import-order
 
 __version__ = "0.1.0"
 
 __all__ = sorted([
     "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch", "datasets",
-    "calibration_loss", "fuse_batch", "fuse_frame", "fuse_sequence", "fuse_sweep", "init_map",
+    "calibration_loss", "fuse_batch", "fuse_frame", "io", "fuse_sequence", "fuse_sweep", "init_map",
     "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid", "rules",
     "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
 ])

@@ -369,7 +369,7 @@ def test_texture_detail_fades_with_the_footprint(texture_id):
 
 
 def test_camera_effects_summary(sequences):
-  from jaxfusion.datasets import __main__ as cli
+  from jaxfusion.lab import data as cli
   on, _ = sequences
   effects = cli.camera_effects(on, SensingConfig())
   assert all(v.shape == (4,) for v in effects.values())

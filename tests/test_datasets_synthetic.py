@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxfusion import datasets
-from jaxfusion.datasets import __main__ as cli
+from jaxfusion.lab import data as cli
 from jaxfusion.datasets import scene, synthetic
 from jaxfusion.datasets.classes import CLASS_COLORS, CLASS_NAMES
 

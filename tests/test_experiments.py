@@ -9,9 +9,9 @@ import pytest
 import trimesh
 
 import jaxfusion_models as models
-from jaxfusion import cli
+from jaxfusion.lab import cli
 from jaxfusion import datasets
-from jaxfusion import experiments
+from jaxfusion.lab import demo as experiments
 
 # The demo test below runs the `demo` command at these sizes (and its default capacity), so that
 # both tests share one set of compiled shapes.

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from jaxfusion import figures
+from jaxfusion.lab import figures
 
 
 def test_outlier_example_flips_bayes_only(tmp_path):

@@ -19,6 +19,7 @@ from scipy import stats
 
 import jaxfusion as jf
 from jaxfusion import simulation as sim
+from jaxfusion.lab import simulate
 from tests import engine_helpers as h
 
 K = 5
@@ -83,7 +84,7 @@ def _draws(seed, labels, instances, depth, poses, model, *, regions, num_draws):
   keys = jax.random.split(jax.random.PRNGKey(seed), num_draws)
   camera = jf.Camera(*(jnp.float32(c) for c in CAM))
 
-  frame = functools.partial(sim._simulate_frame,  # pylint: disable=protected-access
+  frame = functools.partial(sim.simulate_frame,
                             num_classes=K, regions=regions)
 
   def one(key):
@@ -314,7 +315,7 @@ def test_sweep_rule_stacks_equal_the_named_rules():
   rng = np.random.default_rng(0)
   probs = jnp.asarray(rng.dirichlet(np.ones(K), 50), jnp.float32)
   var = jnp.asarray(rng.uniform(0, 0.2, (50, K)), jnp.float32)
-  r_stack, dr_stack = sim._sweep_rules(0.3)  # pylint: disable=protected-access
+  r_stack, dr_stack = simulate._sweep_rules(0.3)  # pylint: disable=protected-access
   first = lambda stack: jax.tree.map(lambda x: x[0], stack)
   for stacked, named in ((first(r_stack), jf.rules.bayes()),
                          (first(dr_stack), jf.rules.robust(regularize=False))):
@@ -334,19 +335,19 @@ def test_sweep_rule_stacks_equal_the_named_rules():
 
 @pytest.fixture(scope="module")
 def tiny_sweep(scene):
-  return sim.sweep_grid([scene], x_param="cross_view_correlation", x_values=[0.0, 1.0],
+  return simulate.sweep_grid([scene], x_param="cross_view_correlation", x_values=[0.0, 1.0],
                         y_param="error_rate", y_values=[0.0, 0.4], voxel_size=VOXEL,
                         base={"alpha_noise": 0.5}, num_draws=1, progress=False)
 
 
 def test_tiny_sweep(tiny_sweep):
   out = tiny_sweep
-  assert out["miou"].shape == (2, 2, 1, len(sim.SWEEP_RULES))
+  assert out["miou"].shape == (2, 2, 1, len(simulate.SWEEP_RULES))
   acc = out["accuracy"]
   # No errors: every rule maps every voxel right.
   assert np.all(acc[0] >= 0.99), acc[0]
   # Errors cost accuracy, and the oracle is never below Bayes (it keeps all right evidence).
-  bayes, oracle = acc[..., 0], acc[..., sim.SWEEP_RULES.index("oracle")]
+  bayes, oracle = acc[..., 0], acc[..., simulate.SWEEP_RULES.index("oracle")]
   assert np.all(acc[1, :, :, 0] < 0.99)
   assert np.all(oracle >= bayes - 1e-12)
   np.testing.assert_allclose(out["error_rate"][0], 0.0)
@@ -356,29 +357,29 @@ def test_tiny_sweep(tiny_sweep):
 
 
 def test_sweep_writes_heatmap_and_tables(tiny_sweep, tmp_path):
-  paths = sim.write_results(str(tmp_path), tiny_sweep)
+  paths = simulate.write_results(str(tmp_path), tiny_sweep)
   with open(paths[0], "rb") as f:
     assert f.read(8) == b"\x89PNG\r\n\x1a\n"
   rows = open(paths[1]).read().strip().splitlines()
   assert len(rows) == 1 + 4 and "miou_DR_minus_Bayes" in rows[0]
   payload = json.load(open(paths[2]))
-  assert payload["rules"] == list(sim.SWEEP_RULES) and len(payload["cells"]) == 4
+  assert payload["rules"] == list(simulate.SWEEP_RULES) and len(payload["cells"]) == 4
 
 
 def test_sweep_validation(scene):
   with pytest.raises(ValueError, match="a sweep axis must be one of"):
-    sim.sweep_grid([scene], x_param="beta", x_values=[0], y_param="error_rate", y_values=[0])
+    simulate.sweep_grid([scene], x_param="beta", x_values=[0], y_param="error_rate", y_values=[0])
   with pytest.raises(ValueError, match="the two axes must differ"):
-    sim.sweep_grid([scene], x_param="error_rate", x_values=[0], y_param="error_rate",
+    simulate.sweep_grid([scene], x_param="error_rate", x_values=[0], y_param="error_rate",
                    y_values=[0])
   with pytest.raises(ValueError, match="error_rate must be in"):
-    sim.sweep_grid([scene], x_param="error_rate", x_values=[2.0], y_param="alpha_noise",
+    simulate.sweep_grid([scene], x_param="error_rate", x_values=[2.0], y_param="alpha_noise",
                    y_values=[0])
 
 
 def test_command(scene, tmp_path, monkeypatch, capsys):
-  from jaxfusion import cli
-  monkeypatch.setattr(sim, "load_sequence", lambda spec, **kw: scene)
+  from jaxfusion.lab import cli
+  monkeypatch.setattr(simulate, "load_sequence", lambda spec, **kw: scene)
   parser = cli.build_parser()
   args = parser.parse_args(["simulate-sweep", "--quick", "--out", str(tmp_path),
                             "--x-values", "0,1", "--y-values", "0,0.4", "--y", "error_rate",

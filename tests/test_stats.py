@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from jaxfusion import metrics
-from jaxfusion import stats
+from jaxfusion.lab import stats
 
 
 def test_interval_of_a_mean_matches_the_normal_theory_interval():

@@ -11,10 +11,10 @@ import pytest
 
 import jaxfusion as jf
 from jaxfusion import camera as camera_lib
-from jaxfusion import cli
-from jaxfusion import experiments
-from jaxfusion import stats
-from jaxfusion import study
+from jaxfusion.lab import cli
+from jaxfusion.lab import demo as experiments
+from jaxfusion.lab import stats
+from jaxfusion.lab import study
 
 # Shapes shared with tests/test_experiments.py (the capacity of its `demo` run) and
 # tests/test_viewer_scene_data.py, so that compiled fusion steps are reused.

@@ -14,6 +14,7 @@ import jaxfusion as jf
 from jaxfusion import batch
 from jaxfusion import metrics
 from jaxfusion import tune
+from jaxfusion.lab import tuning
 from tests import engine_helpers as h
 
 K = 4
@@ -178,8 +179,8 @@ def test_commands_run(data, tmp_path, monkeypatch):
   monkeypatch.setattr(tune, "load_calibration_sequence", load)
   parser = argparse.ArgumentParser()
   sub = parser.add_subparsers()
-  tune.add_sweep_parser(sub)
-  tune.add_tune_beta_parser(sub)
+  tuning.add_sweep_parser(sub)
+  tuning.add_tune_beta_parser(sub)
   args = parser.parse_args(["sweep", "--num-betas", "3", "--beta-max", "0.9", "--voxel-size",
                             str(VOXEL), "--json", str(tmp_path / "s.json"),
                             "--plot", str(tmp_path / "s.png")])
@@ -305,11 +306,11 @@ def test_protocol_and_comparison_commands(two, tmp_path, monkeypatch):
     seen.append((units, kwargs["front_end"]))
     return two
 
-  monkeypatch.setattr(tune, "load_sequence_batch", load)
+  monkeypatch.setattr(tuning, "load_sequence_batch", load)
   parser = argparse.ArgumentParser()
   sub = parser.add_subparsers()
-  tune.add_tune_protocol_parser(sub)
-  tune.add_tune_compare_parser(sub)
+  tuning.add_tune_protocol_parser(sub)
+  tuning.add_tune_compare_parser(sub)
   common = ["--envs", "office", "--trajectories", "0", "--calibration-seeds", "1",
             "--held-out-seeds", "3", "--steps", "2", "--voxel-size", str(VOXEL)]
   args = parser.parse_args(["tune-protocol", *common, "--resamples", "50", "--out",
@@ -336,5 +337,5 @@ def test_protocol_and_comparison_commands(two, tmp_path, monkeypatch):
   assert len(out["grid"]["held_out"]["miou"]) == 2
   assert (tmp_path / "c" / "compare.png").stat().st_size > 1000
   with pytest.raises(ValueError, match="disjoint"):
-    tune._protocol_batches(parser.parse_args(  # pylint: disable=protected-access
+    tuning._protocol_batches(parser.parse_args(  # pylint: disable=protected-access
         ["tune-protocol", "--calibration-seeds", "1", "--held-out-seeds", "1"]))

@@ -14,9 +14,9 @@ pytest.importorskip("viser")
 
 from jaxfusion import datasets   # noqa: E402
 from jaxfusion.datasets.classes import CHAIR, PLANT, TV   # noqa: E402
-from jaxfusion.viewer import browser   # noqa: E402
-from jaxfusion.viewer import scene_data as sd   # noqa: E402
-from jaxfusion.viewer import server   # noqa: E402
+from jaxfusion.lab.viewer import browser   # noqa: E402
+from jaxfusion.lab.viewer import scene_data as sd   # noqa: E402
+from jaxfusion.lab.viewer import server   # noqa: E402
 from tests.test_viewer_server import save_floor_maps   # noqa: E402
 
 WIDTH, HEIGHT = 1280, 800

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import jaxfusion as jf
-from jaxfusion import cli
+from jaxfusion.lab import cli
 from jaxfusion import io
-from jaxfusion.viewer import scene_data as sd
+from jaxfusion.lab.viewer import scene_data as sd
 from tests import engine_helpers as h
 
 NAMES = ("wall", "chair", "table", "plant")

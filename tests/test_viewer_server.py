@@ -15,8 +15,8 @@ pytest.importorskip("viser")
 
 import jaxfusion as jf   # noqa: E402
 from jaxfusion import datasets, io   # noqa: E402
-from jaxfusion.viewer import scene_data as sd   # noqa: E402
-from jaxfusion.viewer import server   # noqa: E402
+from jaxfusion.lab.viewer import scene_data as sd   # noqa: E402
+from jaxfusion.lab.viewer import server   # noqa: E402
 
 NAMES = tuple(datasets.CLASS_NAMES)
 CAMERA = jf.Camera(24.0, 24.0, 23.5, 17.5)
@@ -108,7 +108,7 @@ def test_view_command_serves_and_stops_on_ctrl_c(maps):
   # this test's parent may be after other tests): Ctrl-C must still stop the viewer.
   # (A tiny launcher ignores SIGINT and execs the command, which inherits the disposition.)
   launcher = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
-              "os.execv(sys.executable, [sys.executable, '-m', 'jaxfusion.cli', 'view', "
+              "os.execv(sys.executable, [sys.executable, '-m', 'jaxfusion.lab.cli', 'view', "
               "*sys.argv[1:]])")
   proc = subprocess.Popen([sys.executable, "-c", launcher, maps[0].path, "--port", "0"],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)

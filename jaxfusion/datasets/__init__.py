@@ -24,7 +24,6 @@ from jaxfusion.datasets.scannet import load_scannet
 from jaxfusion.datasets.sensing import SensingConfig
 from jaxfusion.datasets.sequence import RGBDFrame
 from jaxfusion.datasets.sequence import RGBDSequence
-from jaxfusion.datasets.sequence import Sequence
 from jaxfusion.datasets.sequence import load_sequence
 from jaxfusion.datasets.synthetic import list_sequences
 from jaxfusion.datasets.synthetic import make_sequence
@@ -33,8 +32,19 @@ from jaxfusion.datasets.tum import load_tum
 
 __all__ = sorted([
     "CLASS_COLORS", "CLASS_NAMES", "IGNORE_LABEL", "NYU40_TO_SCANNET12", "RGBDFrame",
-    "RGBDSequence", "SCANNET_CLASS_NAMES", "SCANNET_COLORS", "Sequence", "SensingConfig",
+    "RGBDSequence", "SCANNET_CLASS_NAMES", "SCANNET_COLORS", "SensingConfig",
     "gt_voxel_labels",
     "list_sequences", "load_scannet", "load_sequence", "load_tum", "make_sequence",
     "middlebury_frame", "render_preview", "sample_views",
 ])
+
+
+def __getattr__(name):
+  # `datasets.Sequence` was the old name of `RGBDSequence` (it shadowed `typing.Sequence` in a
+  # star import); it still resolves, with a warning.
+  if name == "Sequence":
+    import warnings  # pylint: disable=import-outside-toplevel
+    warnings.warn("jaxfusion.datasets.Sequence is RGBDSequence; use that name",
+                  DeprecationWarning, stacklevel=2)
+    return RGBDSequence
+  raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -8,7 +8,6 @@ when asked to, and count them.
 import os
 import warnings
 
-import cv2
 import numpy as np
 
 
@@ -23,6 +22,7 @@ def _require(path: str) -> None:
 
 def read_rgb(path: str) -> np.ndarray:
   """`(H, W, 3) uint8` RGB image from a JPEG/PNG file."""
+  import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where it is used)
   _require(path)
   img = cv2.imread(path, cv2.IMREAD_COLOR)
   if img is None:
@@ -32,6 +32,7 @@ def read_rgb(path: str) -> np.ndarray:
 
 def read_png16(path: str) -> np.ndarray:
   """`(H, W)` integer image (uint16 depth or label PNG) read without conversion."""
+  import cv2  # pylint: disable=import-outside-toplevel
   _require(path)
   img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
   if img is None:
@@ -69,20 +70,6 @@ def read_matrix(path: str, shape=None) -> np.ndarray:
   if shape is not None and m.shape != tuple(shape):
     raise BadFileError(f"expected a {shape[0]}x{shape[1]} matrix in {path}; got {m.shape}")
   return m
-
-
-def write_png16(path: str, img: np.ndarray) -> None:
-  """Writes a `(H, W)` uint8/uint16 image as PNG (for fixtures and exports)."""
-  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  if not cv2.imwrite(path, np.asarray(img)):
-    raise OSError(f"could not write {path}")
-
-
-def write_rgb(path: str, rgb: np.ndarray) -> None:
-  """Writes an `(H, W, 3) uint8` RGB image (JPEG or PNG by extension)."""
-  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  if not cv2.imwrite(path, np.asarray(rgb, np.uint8)[..., ::-1]):
-    raise OSError(f"could not write {path}")
 
 
 def warn_skipped(loader: str, skipped: list) -> None:

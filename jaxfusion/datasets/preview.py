@@ -5,7 +5,6 @@ Shape legend: H×W pixels.
 
 import os
 
-import cv2
 import numpy as np
 
 from jaxfusion.datasets.classes import CLASS_COLORS, colorize
@@ -22,6 +21,7 @@ def depth_image(depth: np.ndarray, *, max_depth=None) -> np.ndarray:
   Returns:
     `(H, W, 3) uint8` RGB image.
   """
+  import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where used)
   depth = np.asarray(depth, np.float32)
   valid = depth > 0
   if max_depth is None:
@@ -35,6 +35,7 @@ def depth_image(depth: np.ndarray, *, max_depth=None) -> np.ndarray:
 
 def preview_image(frame: RGBDFrame, *, class_colors=None) -> np.ndarray:
   """The `(H, 3·W, 3) uint8` RGB | depth | labels panel of a frame (labels black if absent)."""
+  import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where used)
   colors = CLASS_COLORS if class_colors is None else np.asarray(class_colors, np.uint8)
   rgb = np.asarray(frame.rgb, np.uint8)
   depth = depth_image(frame.depth)
@@ -60,6 +61,7 @@ def render_preview(frame: RGBDFrame, path: str, *, class_colors=None, scale: int
   Returns:
     The path written.
   """
+  import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where used)
   panel = preview_image(frame, class_colors=class_colors)
   if scale > 1:
     panel = np.repeat(np.repeat(panel, scale, axis=0), scale, axis=1)

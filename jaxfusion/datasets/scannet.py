@@ -21,7 +21,6 @@ counted the same way. A bad intrinsics file is always an error.
 import csv
 import os
 
-import cv2
 import numpy as np
 
 from jaxfusion.camera import Camera
@@ -107,6 +106,7 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
     FileNotFoundError: a required folder or file is missing (without `skip_bad`).
     ValueError: counts do not match, a file is corrupt, or no valid frame remains.
   """
+  import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where used)
   if stride < 1:
     raise ValueError(f"stride must be ≥ 1; got {stride}")
   path = os.path.abspath(path)

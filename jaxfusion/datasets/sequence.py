@@ -234,8 +234,6 @@ class RGBDSequence:
                info=meta.get("info", {}))
 
 
-Sequence = RGBDSequence
-
 
 def load_sequence(path: str) -> RGBDSequence:
   """Reads a folder written by `RGBDSequence.save`."""

@@ -2,7 +2,7 @@
 
 Used by the viewer's browser tests and to make the README's screenshot:
 
-  python -m jaxfusion.viewer.browser http://127.0.0.1:8080 docs/viewer.png --wait 8
+  python -m jaxfusion.lab.viewer.browser http://127.0.0.1:8080 docs/viewer.png --wait 8
 
 Chromium renders WebGL in software (SwiftShader), so no GPU is needed. Needs the `chromium`
 executable (Debian: `apt-get install chromium`) and `websockets` (installed with viser).
@@ -221,7 +221,7 @@ class HeadlessPage:
 
 
 def main(argv=None) -> int:
-  p = argparse.ArgumentParser(prog="python -m jaxfusion.viewer.browser",
+  p = argparse.ArgumentParser(prog="python -m jaxfusion.lab.viewer.browser",
                               description="Screenshot a web page (e.g. the viewer) in headless "
                                           "Chromium.")
   p.add_argument("url")

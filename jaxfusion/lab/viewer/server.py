@@ -15,7 +15,7 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
-from jaxfusion.viewer import scene_data as sd
+from jaxfusion.lab.viewer import scene_data as sd
 
 _UP_AXIS = 2   # jaxfusion's worlds are z-up
 _BOX_VERTICES = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5)

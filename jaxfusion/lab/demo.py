@@ -17,7 +17,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import jaxfusion as jf
-from jaxfusion import figures
+from jaxfusion.lab import figures
 from jaxfusion import io
 from jaxfusion import metrics
 

@@ -157,7 +157,7 @@ def cmd_export(args):
 
 
 def cmd_demo(args):
-  from jaxfusion import experiments
+  from jaxfusion.lab import demo as experiments
   overrides = {"beta": args.beta, "aggregate": args.aggregate}
   for name in ("envs", "trajectories"):
     if getattr(args, name):
@@ -178,15 +178,15 @@ def cmd_demo(args):
 
 
 def cmd_figure(args):
-  from jaxfusion import figures
+  from jaxfusion.lab import figures
   ex = figures.outlier_figure(args.out)
   print(f"wrote {args.out}: Bayesian posterior after the outlier "
         f"{np.round(ex['posterior']['Bayesian'], 3)}, D+R {np.round(ex['posterior']['D+R'], 3)}")
 
 
 def cmd_datasets(args, extra):
-  from jaxfusion.datasets import __main__ as datasets_main
-  return datasets_main.main([args.command] + extra)
+  from jaxfusion.lab import data
+  return data.main([args.command] + extra)
 
 
 def build_parser():
@@ -248,22 +248,18 @@ def build_parser():
                                 "(see `python -m jaxfusion.datasets render --help`)")):
     sub.add_parser(name, help=text, add_help=False).set_defaults(func=None)
 
-  from jaxfusion.viewer import command as view_command   # imports viser only when it runs
+  from jaxfusion.lab.viewer import command as view_command   # imports viser only when it runs
   view_command.add_parser(sub)
 
-  from jaxfusion import study
+  from jaxfusion.lab import study
   study.add_study_parser(sub)
 
-  try:
-    from jaxfusion import tune
-  except ImportError:
-    tune = None
-  for builder in ("add_sweep_parser", "add_tune_beta_parser", "add_tune_compare_parser",
-                  "add_tune_protocol_parser"):
-    if tune is not None and hasattr(tune, builder):
-      getattr(tune, builder)(sub)
-  from jaxfusion import simulation
-  simulation.add_simulate_sweep_parser(sub)
+  from jaxfusion.lab import tuning
+  for builder in (tuning.add_sweep_parser, tuning.add_tune_beta_parser,
+                  tuning.add_tune_compare_parser, tuning.add_tune_protocol_parser):
+    builder(sub)
+  from jaxfusion.lab import simulate
+  simulate.add_simulate_sweep_parser(sub)
   return p
 
 

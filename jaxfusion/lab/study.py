@@ -60,11 +60,11 @@ from tqdm.auto import tqdm
 
 import jaxfusion as jf
 from jaxfusion import camera as camera_lib
-from jaxfusion import experiments
-from jaxfusion import figures
+from jaxfusion.lab import demo as experiments
+from jaxfusion.lab import figures
 from jaxfusion import io
 from jaxfusion import metrics
-from jaxfusion import stats
+from jaxfusion.lab import stats
 from jaxfusion.rules.robust import DEFAULT_EPS
 
 HEADROOM = ("mostly right", "outvoted right", "never right")

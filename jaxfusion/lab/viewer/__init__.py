@@ -5,6 +5,6 @@ serves it with viser (the optional `viewer` extra: `pip install 'jaxfusion[viewe
 `command` is the `view` subcommand. The engine never imports this package.
 """
 
-from jaxfusion.viewer import scene_data
+from jaxfusion.lab.viewer import scene_data
 
 __all__ = ["scene_data"]

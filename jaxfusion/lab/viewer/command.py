@@ -2,7 +2,7 @@
 
 import socket
 
-from jaxfusion.viewer import scene_data as sd
+from jaxfusion.lab.viewer import scene_data as sd
 
 
 def check_host(host: str) -> None:
@@ -52,5 +52,5 @@ def run(args) -> None:
     import viser  # noqa: F401  (the optional dependency)
   except ImportError:
     raise ValueError(sd.INSTALL_HINT) from None
-  from jaxfusion.viewer import server
+  from jaxfusion.lab.viewer import server
   server.serve(args.paths, host=args.host, port=args.port, max_cubes=args.max_cubes)

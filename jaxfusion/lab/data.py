@@ -1,0 +1,136 @@
+"""Command line for the datasets: `python -m jaxfusion.datasets {list,render,save,show,bench}`.
+
+Examples:
+  python -m jaxfusion.datasets list
+  python -m jaxfusion.datasets bench --height 120 --width 160
+  python -m jaxfusion.datasets render --env office --trajectory 0 --frame 0 --out frame.png
+  python -m jaxfusion.datasets save --env house --trajectory 2 --out seqs/house_2
+  python -m jaxfusion.datasets show --path seqs/house_2 --frame 3 --out frame.png
+"""
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from jaxfusion.datasets import preview, sensing, synthetic
+from jaxfusion.datasets.classes import CLASS_COLORS, SCANNET_CLASS_NAMES, SCANNET_COLORS
+from jaxfusion.datasets.sensing import SensingConfig
+from jaxfusion.datasets.sequence import RGBDSequence
+
+
+def _add_synthetic_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--env", choices=synthetic.ENVIRONMENTS, default="office")
+  p.add_argument("--trajectory", type=int, choices=range(synthetic.NUM_TRAJECTORIES), default=0)
+  p.add_argument("--domain", choices=("train", "test"), default="test")
+  p.add_argument("--num-frames", type=int, default=60)
+  p.add_argument("--height", type=int, default=240)
+  p.add_argument("--width", type=int, default=320)
+  p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--shift", type=float, default=1.0)
+  p.add_argument("--no-realism", action="store_true", help="exact depth and colour")
+  p.add_argument("--no-sensing", action="store_true",
+                 help="plain sensor model instead of the view-dependent camera model")
+
+
+def _colors_for(seq: RGBDSequence):
+  return SCANNET_COLORS if tuple(seq.class_names) == SCANNET_CLASS_NAMES else CLASS_COLORS
+
+
+def camera_effects(seq: RGBDSequence, config: SensingConfig) -> dict:
+  """Per-frame size of the camera model's blur in a synthetic sequence.
+
+  Returns:
+    dict of `(T,)` arrays: `motion_blur_px` (median over pixels of the length of the motion
+    streak), `defocus_sigma_px` (median thin-lens + optical σ), `exposure`.
+  """
+  states = seq.info["camera_states"]
+  dt = states["frame_interval_s"]
+  motion, defocus = [], []
+  for t in range(len(seq)):
+    other = seq.T_world_cam[t - 1] if t > 0 else seq.T_world_cam[min(1, len(seq) - 1)]
+    v, w = sensing.velocity(other, seq.T_world_cam[t], dt)
+    path = sensing.motion_from_velocity(v, w, states["exposure_time_s"][t])
+    du, dv = sensing.motion_flow(seq.depth[t], seq.camera, path)
+    motion.append(float(np.median(np.hypot(du[-1], dv[-1]))))
+    defocus.append(float(np.median(sensing.defocus_sigma(
+        seq.depth[t], seq.camera.fx, aperture=config.aperture,
+        focus_distance=config.focus_distance, optical_blur=config.optical_blur))))
+  return {"motion_blur_px": np.array(motion), "defocus_sigma_px": np.array(defocus),
+          "exposure": np.array(states["exposure"])}
+
+
+def main(argv=None) -> int:
+  """Runs the command; returns the exit status."""
+  parser = argparse.ArgumentParser(prog="python -m jaxfusion.datasets",
+                                   description="The embedded synthetic world and its sequences.")
+  sub = parser.add_subparsers(dest="command", required=True)
+  sub.add_parser("list", help="list the embedded sequences (environment, trajectory)")
+  render = sub.add_parser("render", help="render one frame as an RGB | depth | labels PNG")
+  _add_synthetic_args(render)
+  render.add_argument("--frame", type=int, default=0)
+  render.add_argument("--out", default="frame.png")
+  save = sub.add_parser("save", help="render a whole sequence and save it to a folder")
+  _add_synthetic_args(save)
+  save.add_argument("--out", required=True)
+  show = sub.add_parser("show", help="preview a frame of a saved sequence folder")
+  show.add_argument("--path", required=True)
+  show.add_argument("--frame", type=int, default=0)
+  show.add_argument("--out", default="frame.png")
+  bench = sub.add_parser("bench", help="time rendering with and without the camera model")
+  _add_synthetic_args(bench)
+  args = parser.parse_args(argv)
+
+  if args.command == "list":
+    for env, t in synthetic.list_sequences():
+      print(f"{env}\t{t}\t{synthetic.trajectories.TRAJECTORY_NAMES[t]}")
+    return 0
+  if args.command == "show":
+    seq = RGBDSequence.load(args.path)
+    preview.render_preview(seq[args.frame], args.out, class_colors=_colors_for(seq))
+    print(f"wrote {args.out} (frame {args.frame} of {seq!r})")
+    return 0
+  sensing = SensingConfig.off() if getattr(args, "no_sensing", False) else SensingConfig()
+  if args.command == "bench":
+    for name, config in (("sensing off", SensingConfig.off()), ("sensing on", SensingConfig())):
+      kwargs = dict(domain=args.domain, num_frames=args.num_frames, height=args.height,
+                    width=args.width, seed=args.seed, shift=args.shift, sensing=config)
+      synthetic.make_sequence(args.env, args.trajectory, **kwargs)  # compile
+      wall, cpu = time.perf_counter(), time.process_time()
+      synthetic.make_sequence(args.env, args.trajectory, **kwargs)
+      wall = 1e3 * (time.perf_counter() - wall) / args.num_frames
+      cpu = 1e3 * (time.process_time() - cpu) / args.num_frames
+      print(f"{name}: {wall:.1f} ms/frame wall, {cpu:.1f} ms/frame CPU (all threads) "
+            f"({args.env} trajectory {args.trajectory}, {args.num_frames} frames at "
+            f"{args.width}x{args.height})", flush=True)
+    seq = synthetic.make_sequence(args.env, args.trajectory, **kwargs)
+    blur = camera_effects(seq, SensingConfig())
+    print("per frame, median over pixels (and over frames: median / 90th percentile): "
+          + ", ".join(f"{k} {np.median(v):.2f} / {np.percentile(v, 90):.2f}"
+                      for k, v in blur.items()), flush=True)
+    return 0
+  if args.command == "render":
+    if not 0 <= args.frame < args.num_frames:
+      parser.error(f"--frame must lie in [0, {args.num_frames})")
+    world = synthetic.make_scene(args.env, seed=args.seed, domain=args.domain, shift=args.shift)
+    pose = synthetic.trajectories.trajectory(world.layout.room, args.trajectory,
+                                             args.num_frames)[args.frame]
+    frame = synthetic.render(world, pose, synthetic.default_camera(args.height, args.width),
+                             height=args.height, width=args.width, realism=not args.no_realism,
+                             sensing=sensing)
+    preview.render_preview(frame, args.out)
+    print(f"wrote {args.out} ({args.env} trajectory {args.trajectory} frame {args.frame}, "
+          f"{args.domain} domain, {args.width}x{args.height})")
+    return 0
+  seq = synthetic.make_sequence(args.env, args.trajectory, domain=args.domain,
+                                num_frames=args.num_frames, height=args.height, width=args.width,
+                                seed=args.seed, shift=args.shift, realism=not args.no_realism,
+                                sensing=sensing)
+  seq.save(args.out)
+  print(f"saved {seq!r} to {args.out}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

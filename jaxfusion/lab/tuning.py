@@ -1,0 +1,750 @@
+"""Tuning protocols and commands: `jaxfusion sweep`, `tune-beta`, `tune-compare`, `tune-protocol`.
+
+The maths (sweeps, surrogate losses, `tune_hparams`) is the library's `jaxfusion.tune`; this
+module loads embedded sequences with a front end, runs the protocols on them (do the
+surrogates' optima track the mIoU's; tune on calibration layouts, judge on held-out ones) and
+formats, plots and writes what they find.
+
+Shape legend: R rules, B sequences, T frames, H×W pixels, K classes, N GT voxels.
+"""
+
+import argparse
+import json
+import math
+import time
+from typing import Optional, Sequence
+
+import jax
+import numpy as np
+
+from jaxfusion import batch
+from jaxfusion import fusion
+from jaxfusion import metrics
+from jaxfusion import rules as rules_lib
+from jaxfusion import sources
+from jaxfusion.lab import stats
+from jaxfusion.tune import DEFAULT_OBJECTIVE
+from jaxfusion.tune import OBJECTIVES
+from jaxfusion.tune import check_objective
+from jaxfusion.tune import evaluate_rules
+from jaxfusion.tune import pad_ground_truth
+from jaxfusion.tune import simulate_predictions
+from jaxfusion.tune import sweep_beta
+from jaxfusion.tune import tune_hparams
+
+
+# --- data: embedded sequences with a simulated network or the shipped one ----------------------
+DEFAULT_CACHE_DIR = "outputs/cache"
+FRONT_ENDS = ("simulated", "shipped")
+
+
+def _next_pow2(n: int) -> int:
+  return 1 << max(int(n) - 1, 1).bit_length()
+
+
+def _parse_spec(spec: str) -> tuple[str, int]:
+  try:
+    env, traj = spec.split(":")
+    return env, int(traj)
+  except ValueError:
+    raise ValueError(f"a sequence is ENV:TRAJECTORY, e.g. office:0; got {spec!r}") from None
+
+
+def load_calibration_sequence(spec: str, *, num_frames: int, height: int, width: int,
+                              voxel_size: float, domain: str = "test", seed: int = 0,
+                              predictions: Optional[str] = None, num_samples: int = 8,
+                              key_seed: int = 0, shift: float = 1.0, front_end=None,
+                              cache_dir: Optional[str] = None) -> dict:
+  """A synthetic sequence with GT voxel labels and network outputs, ready to sweep or tune.
+
+  Args:
+    spec: "ENV:TRAJECTORY", e.g. "office:0".
+    num_frames: T.
+    height: H.
+    width: W.
+    voxel_size: voxel edge in metres for the GT (and the maps).
+    domain: "train" or "test" appearance.
+    seed: layout seed of the synthetic world.
+    predictions: a folder with one sub-folder per sequence name (e.g. `office_0_test/`) of
+      per-frame `.npz` predictions (`sources.precomputed_source`).
+    num_samples: M (MC-dropout samples of the network, or of the simulated one).
+    key_seed: PRNG seed of the MC samples.
+    shift: the test domain's shift in [0, 1] (`datasets.make_sequence`).
+    front_end: a network front end (`experiments.FrontEnd()`, the shipped weights; or any
+      object with `model_id` and `predict(rgb, *, num_samples, key) -> (det, mean, var)`): its
+      MC mean and variance are computed once per sequence and cached on disk
+      (`experiments.cached_predictions`). None, and no `predictions`: `simulate_predictions`.
+    cache_dir: the front end's cache folder (default `outputs/cache`, the study's layout).
+
+  Returns:
+    dict with `name` (`<sequence>_s<seed>`), `frames` (a Frame with a leading T axis),
+    `camera`, `gt` (dict with `coords`, `labels`), `num_classes`, `capacity` (a power of two ≥
+    4× the GT voxels), `source`.
+  """
+  from jaxfusion import datasets  # pylint: disable=import-outside-toplevel
+  from jaxfusion.datasets import ground_truth  # pylint: disable=import-outside-toplevel
+  if front_end is not None and predictions is not None:
+    raise ValueError("give either a front end or a predictions folder, not both")
+  env, traj = _parse_spec(spec)
+  seq = datasets.make_sequence(env, traj, domain=domain, num_frames=num_frames, height=height,
+                               width=width, seed=seed, shift=shift)
+  gt = ground_truth.gt_voxel_labels(seq, voxel_size=voxel_size)
+  num_classes = seq.num_classes
+  if front_end is not None:
+    from jaxfusion.lab import demo as experiments  # pylint: disable=import-outside-toplevel
+    cache_dir = cache_dir or DEFAULT_CACHE_DIR
+    config = experiments.ExperimentConfig(
+        num_frames=num_frames, height=height, width=width, num_samples=num_samples,
+        domain=domain, shift=float(shift), scene_seed=int(seed), seed=int(key_seed),
+        voxel_size=voxel_size)
+    preds = experiments.cached_predictions(front_end, seq, config, cache_dir)
+    probs, var = preds["mean"], preds["var"]
+    source = f"network {front_end.model_id} (MC dropout, M={num_samples}; cache {cache_dir})"
+  elif predictions is None:
+    key = jax.random.fold_in(jax.random.PRNGKey(key_seed), 97 * traj + len(env))
+    probs, var = simulate_predictions(key, seq.labels, num_classes=num_classes,
+                                      num_samples=num_samples)
+    source = f"simulated network (M={num_samples})"
+  else:
+    src = sources.precomputed_source(f"{predictions}/{seq.name}")
+    preds = [src.predict(jax.random.PRNGKey(0), seq.rgb[i], index=i) for i in range(len(seq))]
+    probs = np.stack([np.asarray(p.probs) for p in preds])
+    var = (None if preds[0].var is None else np.stack([np.asarray(p.var) for p in preds]))
+    source = f"precomputed predictions in {predictions}/{seq.name}"
+  frames = fusion.Frame(np.asarray(seq.depth, np.float32), np.asarray(seq.T_world_cam,
+                                                                      np.float32),
+                        np.asarray(probs, np.float32),
+                        None if var is None else np.asarray(var, np.float32))
+  return {"name": f"{seq.name}_s{seed}", "frames": frames, "camera": seq.camera, "gt": gt,
+          "num_classes": num_classes, "source": source,
+          "capacity": max(1024, _next_pow2(4 * len(gt["labels"])))}
+
+
+def load_sequence_batch(units: Sequence[tuple], **kwargs) -> dict:
+  """B sequences as one padded batch, for `tune_hparams`, `sweep` and `evaluate_rules`.
+
+  Args:
+    units: `[(env, trajectory, layout_seed)]`.
+    **kwargs: passed to `load_calibration_sequence` (sizes, front end, …).
+
+  Returns:
+    dict with `names` (B), `frames` (`(B, T, …)`), `mask` `(B, T)`, `camera`, `coords`
+    `(B, N, 3)`, `labels` `(B, N)` (−1 padding), `capacity`, `num_classes`, `source`.
+  """
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  if not units:
+    raise ValueError("load_sequence_batch needs at least one (env, trajectory, seed) unit")
+  datas = [load_calibration_sequence(f"{env}:{traj}", seed=int(seed), **kwargs)
+           for env, traj, seed in tqdm(units, desc="sequences", leave=False)]
+  cameras = {tuple(float(c) for c in d["camera"]) for d in datas}
+  if len(cameras) != 1:
+    raise ValueError(f"the sequences of a batch must share one camera; got {sorted(cameras)}")
+  frames, mask = batch.stack_sequences([d["frames"] for d in datas])
+  coords, labels = pad_ground_truth([d["gt"] for d in datas])
+  return {"names": [d["name"] for d in datas], "frames": frames, "mask": mask,
+          "camera": datas[0]["camera"], "coords": coords, "labels": labels,
+          "capacity": max(d["capacity"] for d in datas), "num_classes": datas[0]["num_classes"],
+          "source": datas[0]["source"]}
+
+
+# --- do the surrogates' optima track the mIoU's? -----------------------------------------------
+def _ranks(x: np.ndarray) -> np.ndarray:
+  """Average ranks (ties share the mean rank)."""
+  x = np.asarray(x, np.float64)
+  order = np.argsort(x, kind="stable")
+  ranks = np.empty(len(x))
+  ranks[order] = np.arange(len(x), dtype=np.float64)
+  for value in np.unique(x):
+    tie = x == value
+    ranks[tie] = ranks[tie].mean()
+  return ranks
+
+
+def spearman(a, b) -> float:
+  """Spearman rank correlation of two equal-length vectors (NaN if one is constant)."""
+  ra, rb = _ranks(a), _ranks(b)
+  ra, rb = ra - ra.mean(), rb - rb.mean()
+  denom = math.sqrt(float(np.sum(ra * ra) * np.sum(rb * rb)))
+  return float(np.sum(ra * rb) / denom) if denom > 0 else float("nan")
+
+
+def compare_objectives(calibration: dict, held_out: dict, *, rule: str = "D+R", betas=None,
+                       steps: int = 40, learning_rate: float = 0.1, init_beta: float = 0.3,
+                       aggregate: str = "sum", voxel_size: float = 0.1, mesh=None) -> dict:
+  """How well each surrogate's optimum matches the mIoU optimum of a β sweep.
+
+  For each objective in `OBJECTIVES`, β is tuned by gradient on the calibration batch
+  (`tune_hparams`), and scored on the held-out batch; a β grid is swept on both batches to
+  give the mIoU curve and each surrogate's curve (the exact batch losses `tune_hparams`
+  minimises). mIoU is pooled over the sequences of a batch (confusions summed).
+
+  Args:
+    calibration: a batch from `load_sequence_batch` to tune on.
+    held_out: a batch to judge on.
+    rule: "R" or "D+R".
+    betas: the sweep grid (default 0, 0.05, …, 1).
+    steps: Adam steps of each tuning run.
+    learning_rate: Adam step size (in logit β).
+    init_beta: start of each tuning run.
+    aggregate: pixel aggregation of the rule.
+    voxel_size: voxel edge (the GT's).
+    mesh: shard the sweeps over devices.
+
+  Returns:
+    dict with `betas`, `grid` (per batch: `miou`, and per objective its loss, each `(R,)`),
+    `best_beta` (per batch: the grid's mIoU argmax), `objectives` (per objective: `beta_star`
+    (gradient), `grid_argmin` (per batch), `spearman` (per batch: rank correlation of −loss
+    with mIoU over the grid), `held_out_miou` at β*, `distance` |β* − held-out best β| and
+    `regret` (held-out best grid mIoU − mIoU at β*), `losses`, `seconds`).
+  """
+  betas = np.round(np.linspace(0.0, 1.0, 21), 4) if betas is None else np.asarray(betas)
+  grid, best = {}, {}
+  for name, data in (("calibration", calibration), ("held_out", held_out)):
+    out = sweep_beta(data["frames"], data["camera"], data["coords"], data["labels"],
+                     betas=betas, rule=rule, capacity=data["capacity"], voxel_size=voxel_size,
+                     mask=data["mask"], mesh=mesh, aggregate=aggregate)
+    grid[name] = {"miou": out["miou_pooled"], "cross_entropy": out["loss_mean"],
+                  "soft_iou": out["soft_iou_loss_pooled"]}
+    best[name] = float(betas[int(np.nanargmax(out["miou_pooled"]))])
+  tuned, seconds = {}, {}
+  for objective in OBJECTIVES:
+    start = time.perf_counter()
+    tuned[objective] = tune_hparams(
+        calibration["frames"], calibration["camera"], calibration["coords"],
+        calibration["labels"], rule=rule, init={"beta": init_beta}, steps=steps,
+        learning_rate=learning_rate, capacity=calibration["capacity"], voxel_size=voxel_size,
+        mask=calibration["mask"], aggregate=aggregate, objective=objective)
+    seconds[objective] = time.perf_counter() - start
+  evals = evaluate_rules([res.rule for res in tuned.values()], held_out["frames"],
+                         held_out["camera"], held_out["coords"], held_out["labels"],
+                         capacity=held_out["capacity"], voxel_size=voxel_size,
+                         mask=held_out["mask"], mesh=mesh)
+  report = {}
+  for (objective, res), ev in zip(tuned.items(), evals):
+    beta_star = float(res.hparams["beta"])
+    report[objective] = {
+        "beta_star": beta_star,
+        "grid_argmin": {n: float(betas[int(np.nanargmin(g[objective]))])
+                        for n, g in grid.items()},
+        "spearman": {n: spearman(-g[objective], g["miou"]) for n, g in grid.items()},
+        "held_out_miou": float(ev["miou_pooled"]),
+        "distance": abs(beta_star - best["held_out"]),
+        "regret": float(np.nanmax(grid["held_out"]["miou"]) - ev["miou_pooled"]),
+        "losses": res.losses.tolist(), "seconds": seconds[objective]}
+  return {"betas": betas, "grid": grid, "best_beta": best, "objectives": report,
+          "rule": rule, "aggregate": aggregate, "steps": steps, "init_beta": init_beta,
+          "calibration": calibration["names"], "held_out": held_out["names"],
+          "source": calibration["source"]}
+
+
+def format_comparison(result: dict) -> str:
+  """A Markdown table of `compare_objectives`."""
+  best = result["best_beta"]
+  held = result["grid"]["held_out"]["miou"]
+  lines = [
+      f"rule {result['rule']} ({result['aggregate']}), {len(result['calibration'])} "
+      f"calibration / {len(result['held_out'])} held-out sequences, {result['source']}; "
+      f"β grid optimum (mIoU): calibration {best['calibration']:.2f}, held-out "
+      f"{best['held_out']:.2f} ({100 * np.nanmax(held):.2f} mIoU)", "",
+      "| objective | β* (gradient) | grid argmin cal. / held-out | Spearman(−loss, mIoU) cal. / "
+      "held-out | held-out mIoU at β* | regret | |β* − best β| |",
+      "|---|---|---|---|---|---|---|"]
+  for name, r in result["objectives"].items():
+    lines.append(
+        f"| {name} | {r['beta_star']:.3f} | {r['grid_argmin']['calibration']:.2f} / "
+        f"{r['grid_argmin']['held_out']:.2f} | {r['spearman']['calibration']:.2f} / "
+        f"{r['spearman']['held_out']:.2f} | {100 * r['held_out_miou']:.2f} | "
+        f"{100 * r['regret']:.2f} | {r['distance']:.3f} |")
+  return "\n".join(lines)
+
+
+def plot_comparison(path: str, result: dict) -> None:
+  """PNG: mIoU and the two surrogates (rescaled to [0, 1], higher is better) against β on the
+  calibration and held-out batches, with each objective's β*."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  from jaxfusion import io  # pylint: disable=import-outside-toplevel
+  betas = result["betas"]
+  colors = {"soft_iou": "tab:orange", "cross_entropy": "tab:green"}
+  fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharex=True)
+  for ax, name in zip(axes, ("calibration", "held_out")):
+    g = result["grid"][name]
+    ax.plot(betas, 100 * g["miou"], "o-", ms=3, color="tab:blue", label="mIoU")
+    ax.set_ylabel("mIoU (%)")
+    ax.set_xlabel("β")
+    ax.set_title(name.replace("_", "-"))
+    twin = ax.twinx()
+    for obj, color in colors.items():
+      loss = np.asarray(g[obj], np.float64)
+      span = np.nanmax(loss) - np.nanmin(loss)
+      score = (np.nanmax(loss) - loss) / span if span > 0 else np.zeros_like(loss)
+      twin.plot(betas, score, "--", color=color, label=f"−{obj} (rescaled)")
+      ax.axvline(result["objectives"][obj]["beta_star"], color=color, lw=1)
+    twin.set_ylim(-0.05, 1.05)
+    twin.set_yticks([])
+    if name == "held_out":
+      lines = ax.get_legend_handles_labels()
+      more = twin.get_legend_handles_labels()
+      ax.legend(lines[0] + more[0], lines[1] + more[1], fontsize=7, loc="lower left")
+  fig.suptitle("surrogate optima (vertical lines: β* by gradient on calibration)", fontsize=9)
+  fig.tight_layout()
+  io.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
+  plt.close(fig)
+
+
+# --- the protocol: tune on calibration seeds, judge on held-out seeds ----------------------------
+def tune_protocol(calibration: dict, held_out: dict, *, rule: str = "D+R",
+                  objective: str = DEFAULT_OBJECTIVE, baseline_beta: float = 0.3,
+                  steps: int = 40, learning_rate: float = 0.1, aggregate: str = "sum",
+                  voxel_size: float = 0.1, num_resamples: int = stats.DEFAULT_RESAMPLES,
+                  confidence: float = stats.DEFAULT_CONFIDENCE, seed: int = 0,
+                  mesh=None) -> dict:
+  """Scalar β*, per-class β* and the paper's β side by side on held-out sequences.
+
+  β is tuned by gradient (`tune_hparams`, `objective`) on the calibration batch, once as one
+  scalar and once per class (SPEC rule 7); the three rules are then fused on every held-out
+  sequence and scored against GT voxel labels. Intervals are percentile bootstraps over the
+  held-out sequences (`stats.bootstrap` of the pooled confusion's mIoU), and the differences
+  to the baseline are paired bootstraps on the same resamples (`stats.paired_difference`).
+
+  Args:
+    calibration: a batch from `load_sequence_batch` (e.g. layout seeds A).
+    held_out: a batch on other layouts (seeds B).
+    rule: "R" or "D+R".
+    objective: the tuning surrogate (see `tune_hparams`).
+    baseline_beta: the paper's β.
+    steps: Adam steps per tuning run.
+    learning_rate: Adam step size.
+    aggregate: pixel aggregation.
+    voxel_size: voxel edge (the GT's).
+    num_resamples: bootstrap resamples.
+    confidence: interval coverage.
+    seed: bootstrap seed.
+    mesh: shard the evaluations over devices.
+
+  Returns:
+    dict with `methods` (name → `beta` (float or list of K), `miou` / `accuracy`
+    `stats.Interval` on the held-out sequences, `vs_baseline` (paired Interval of the mIoU
+    difference, None for the baseline), `iou` (per class, pooled), `miou_calibration`,
+    `miou_per_sequence`), `tuning` (per tuned method: losses, seconds), and the settings.
+  """
+  check_objective(objective)
+  tuned, timing = {}, {}
+  for name, per_class in (("scalar β*", False), ("per-class β*", True)):
+    start = time.perf_counter()
+    tuned[name] = tune_hparams(
+        calibration["frames"], calibration["camera"], calibration["coords"],
+        calibration["labels"], rule=rule, init={"beta": baseline_beta}, steps=steps,
+        learning_rate=learning_rate, capacity=calibration["capacity"], voxel_size=voxel_size,
+        mask=calibration["mask"], aggregate=aggregate, objective=objective,
+        per_class=per_class)
+    timing[name] = time.perf_counter() - start
+  baseline = f"β = {baseline_beta:g}"
+  rules = {baseline: rules_lib.by_name(rule, beta=baseline_beta, aggregate=aggregate)}
+  rules.update({name: res.rule for name, res in tuned.items()})
+  scored = {}
+  for split, data in (("held_out", held_out), ("calibration", calibration)):
+    outs = evaluate_rules(list(rules.values()), data["frames"], data["camera"], data["coords"],
+                          data["labels"], capacity=data["capacity"], voxel_size=voxel_size,
+                          mask=data["mask"], mesh=mesh)
+    scored[split] = dict(zip(rules, outs))
+  counts = stats.resample_counts(len(held_out["names"]), num_resamples, seed=seed)
+  base_cms = scored["held_out"][baseline]["confusion"]
+  methods = {}
+  for name, rule_obj in rules.items():
+    out = scored["held_out"][name]
+    cms = out["confusion"]   # (S, K, K), one per held-out sequence
+    beta = np.asarray(rule_obj.hparams["beta"])
+    methods[name] = {
+        "beta": float(beta) if beta.ndim == 0 else beta.tolist(),
+        "miou": stats.bootstrap(cms, stats.miou, counts=counts, confidence=confidence),
+        "accuracy": stats.bootstrap(cms, stats.accuracy, counts=counts, confidence=confidence),
+        "vs_baseline": (None if name == baseline else stats.paired_difference(
+            cms, base_cms, stats.miou, counts=counts, confidence=confidence)),
+        "iou": metrics.iou_from_confusion(out["confusion_pooled"]).tolist(),
+        "miou_calibration": float(scored["calibration"][name]["miou_pooled"]),
+        "miou_per_sequence": [float(m) for m in out["miou"]]}
+  return {"methods": methods, "baseline": baseline, "rule": rule, "objective": objective,
+          "aggregate": aggregate, "steps": steps, "learning_rate": learning_rate,
+          "calibration": calibration["names"], "held_out": held_out["names"],
+          "source": calibration["source"], "confidence": confidence,
+          "num_resamples": num_resamples,
+          "tuning": {name: {"losses": res.losses.tolist(), "seconds": timing[name]}
+                     for name, res in tuned.items()}}
+
+
+def format_protocol(result: dict, class_names: Sequence[str]) -> str:
+  """Markdown tables of `tune_protocol`: mIoU with intervals, and per-class β and IoU."""
+  pct = lambda iv: f"{100 * iv.estimate:.2f} [{100 * iv.low:.2f}, {100 * iv.high:.2f}]"
+  sgn = lambda iv: (f"{100 * iv.estimate:+.2f} [{100 * iv.low:+.2f}, {100 * iv.high:+.2f}]"
+                    if iv is not None else "—")
+  conf = int(round(100 * result["confidence"]))
+  lines = [
+      f"rule {result['rule']} ({result['aggregate']}), tuned by {result['objective']} on "
+      f"{len(result['calibration'])} calibration sequences, judged on "
+      f"{len(result['held_out'])} held-out sequences ({result['source']}); {conf} % bootstrap "
+      f"intervals over held-out sequences ({result['num_resamples']} resamples)", "",
+      f"| method | β | held-out mIoU | Δ mIoU vs {result['baseline']} (paired) | held-out acc. "
+      f"| calibration mIoU |", "|---|---|---|---|---|---|"]
+  for name, m in result["methods"].items():
+    beta = (f"{m['beta']:.3f}" if isinstance(m["beta"], float)
+            else "per class (below)")
+    lines.append(f"| {name} | {beta} | {pct(m['miou'])} | {sgn(m['vs_baseline'])} | "
+                 f"{pct(m['accuracy'])} | {100 * m['miou_calibration']:.2f} |")
+  lines += ["", "| | " + " | ".join(class_names) + " |",
+            "|---|" + "---|" * len(class_names)]
+  for name, m in result["methods"].items():
+    beta = m["beta"] if isinstance(m["beta"], list) else [m["beta"]] * len(class_names)
+    lines.append(f"| β ({name}) | " + " | ".join(f"{b:.3f}" for b in beta) + " |")
+  for name, m in result["methods"].items():
+    lines.append(f"| IoU ({name}) | " + " | ".join(
+        "—" if v is None or not np.isfinite(v) else f"{100 * v:.1f}" for v in m["iou"]) + " |")
+  return "\n".join(lines)
+
+
+def plot_per_class_beta(path: str, result: dict, class_names: Sequence[str]) -> None:
+  """PNG: the per-class β* as bars, the scalar β* and the baseline as lines."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  from jaxfusion import io  # pylint: disable=import-outside-toplevel
+  methods = result["methods"]
+  per_class = methods["per-class β*"]["beta"]
+  fig, ax = plt.subplots(figsize=(6, 3.2))
+  x = np.arange(len(class_names))
+  ax.bar(x, per_class, color="tab:orange", label="per-class β*")
+  ax.axhline(methods["scalar β*"]["beta"], color="tab:green", ls="--",
+             label=f"scalar β* = {methods['scalar β*']['beta']:.3f}")
+  ax.axhline(methods[result["baseline"]]["beta"], color="grey", ls=":",
+             label=result["baseline"])
+  ax.set_xticks(x)
+  ax.set_xticklabels(class_names, rotation=30, ha="right")
+  ax.set_ylabel("β")
+  ax.set_ylim(0, 1)
+  ax.set_title(f"{result['rule']}: β tuned by {result['objective']} on "
+               f"{len(result['calibration'])} calibration sequences", fontsize=9)
+  ax.legend(fontsize=7)
+  fig.tight_layout()
+  io.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
+  plt.close(fig)
+
+
+def _jsonable(x):
+  if isinstance(x, stats.Interval):
+    return {"estimate": x.estimate, "low": x.low, "high": x.high}
+  if isinstance(x, dict):
+    return {k: _jsonable(v) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [_jsonable(v) for v in x]
+  if isinstance(x, np.ndarray):
+    return x.tolist()
+  if isinstance(x, (np.floating, np.integer)):
+    return x.item()
+  return x
+
+
+# --- command line --------------------------------------------------------------------------------
+def _add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust rule: R, D "
+                   "or D+R") -> None:
+  parser.add_argument("--frames", type=int, default=20, help="frames per sequence")
+  parser.add_argument("--height", type=int, default=60)
+  parser.add_argument("--width", type=int, default=80)
+  parser.add_argument("--voxel-size", type=float, default=0.1)
+  parser.add_argument("--rule", default="D+R", help=rule_help)
+  parser.add_argument("--aggregate", choices=("sum", "mean"), default="sum")
+  parser.add_argument("--front-end", choices=FRONT_ENDS, default="simulated",
+                      help="'shipped': the packaged MC-dropout network, run once per sequence "
+                           "and cached (--cache-dir); 'simulated': simulate_predictions")
+  parser.add_argument("--checkpoint", default=None,
+                      help="weights for --front-end shipped (default: the packaged ones)")
+  parser.add_argument("--cache-dir", default=DEFAULT_CACHE_DIR,
+                      help="front-end cache folder (shared with `jaxfusion study`'s layout)")
+  parser.add_argument("--predictions", default=None,
+                      help="folder of precomputed predictions, one sub-folder per sequence "
+                           "(instead of a front end)")
+  parser.add_argument("--num-samples", type=int, default=8, help="MC samples M")
+  parser.add_argument("--shift", type=float, default=1.0, help="test-domain shift in [0, 1]")
+  parser.add_argument("--seed", type=int, default=0, help="layout seed of the synthetic world")
+  parser.add_argument("--devices", type=int, default=None,
+                      help="shard the sweep over this many devices (default: one)")
+  parser.add_argument("--json", default=None, help="write the results as JSON here")
+
+
+def _front_end(args):
+  if args.front_end == "simulated":
+    return None
+  if args.predictions is not None:
+    raise ValueError("--predictions and --front-end shipped exclude each other")
+  from jaxfusion.lab import demo as experiments  # pylint: disable=import-outside-toplevel
+  return experiments.FrontEnd(args.checkpoint)
+
+
+def _data_kwargs(args, front_end=None) -> dict:
+  return {"num_frames": args.frames, "height": args.height, "width": args.width,
+          "voxel_size": args.voxel_size, "predictions": args.predictions,
+          "num_samples": args.num_samples, "shift": args.shift, "front_end": front_end,
+          "cache_dir": args.cache_dir}
+
+
+def _mesh(args):
+  return None if args.devices in (None, 1) else batch.make_mesh(args.devices)
+
+
+def _write_text(path: str, text: str) -> None:
+  from jaxfusion import io  # pylint: disable=import-outside-toplevel
+
+  def write(tmp):
+    with open(tmp, "w", encoding="utf-8") as f:
+      f.write(text)
+
+  io.atomic_write(path, write)
+
+
+def _write_json(path: Optional[str], payload: dict) -> None:
+  if path:
+    _write_text(path, json.dumps(_jsonable(payload), indent=2))
+    print(f"wrote {path}")
+
+
+def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
+  """Adds `sweep`: mIoU / accuracy / surrogate losses for a grid of β, as one compiled call."""
+  parser = subparsers.add_parser(
+      "sweep", help="fuse one synthetic sequence with a grid of β in one compiled call",
+      description="Fuses a synthetic sequence with R values of β at once (jax.vmap over the "
+                  "stacked rules, optionally sharded over devices) and reports mIoU, accuracy "
+                  "and both tuning surrogates (cross-entropy, 1 − soft mIoU) per β. The "
+                  "network is simulated, the shipped one (--front-end shipped) or "
+                  "precomputed (--predictions).")
+  parser.add_argument("--sequence", default="office:0", help="ENV:TRAJECTORY")
+  parser.add_argument("--num-betas", type=int, default=32)
+  parser.add_argument("--beta-min", type=float, default=0.0)
+  parser.add_argument("--beta-max", type=float, default=1.0)
+  parser.add_argument("--plot", default=None, help="save a plot of mIoU against β here (PNG)")
+  _add_data_args(parser)
+  parser.set_defaults(func=sweep_command)
+  return parser
+
+
+def add_tune_beta_parser(subparsers) -> argparse.ArgumentParser:
+  """Adds `tune-beta`: fit β (and ε, α₀) on a calibration trajectory, score held-out ones."""
+  parser = subparsers.add_parser(
+      "tune-beta", help="fit β by gradient descent on a calibration trajectory",
+      description="Fits β = sigmoid(u) (and optionally ε = exp(v), α₀ = softplus(w)), one "
+                  "value or one per class, with Adam on a surrogate of map quality (the "
+                  "cross-entropy by default, or 1 − soft mIoU) of the fused voxel posteriors "
+                  "against GT voxel labels of a calibration trajectory, then reports mIoU at "
+                  "β* and at a baseline β on held-out trajectories.")
+  parser.add_argument("--calibration", default="office:0", help="ENV:TRAJECTORY")
+  parser.add_argument("--held-out", default="office:1,office:2,house:0,house:1,house:2",
+                      help="comma-separated ENV:TRAJECTORY list")
+  parser.add_argument("--steps", type=int, default=40)
+  parser.add_argument("--learning-rate", type=float, default=0.1)
+  parser.add_argument("--init-beta", type=float, default=0.3)
+  parser.add_argument("--baseline-beta", type=float, default=0.3)
+  parser.add_argument("--tune", default="beta",
+                      help="comma-separated hyperparameters to fit: beta, eps, alpha0")
+  parser.add_argument("--objective", choices=OBJECTIVES, default=DEFAULT_OBJECTIVE,
+                      help="surrogate to minimise")
+  parser.add_argument("--per-class", action="store_true",
+                      help="fit one value per class for each tuned hyperparameter")
+  _add_data_args(parser)
+  parser.set_defaults(func=tune_beta_command)
+  return parser
+
+
+def _add_protocol_args(parser: argparse.ArgumentParser) -> None:
+  parser.add_argument("--envs", nargs="+", choices=("office", "house"),
+                      default=["office", "house"])
+  parser.add_argument("--trajectories", nargs="+", type=int, choices=(0, 1, 2),
+                      default=[0, 1, 2])
+  parser.add_argument("--calibration-seeds", nargs="+", type=int, default=[1],
+                      help="layout seeds of the calibration sequences (A)")
+  parser.add_argument("--held-out-seeds", nargs="+", type=int, default=[2, 3],
+                      help="layout seeds of the held-out sequences (B, disjoint from A)")
+  parser.add_argument("--steps", type=int, default=40)
+  parser.add_argument("--learning-rate", type=float, default=0.1)
+  parser.add_argument("--out", default="outputs/tune", help="output folder")
+  _add_data_args(parser, rule_help="robust rule with β: R or D+R")
+
+
+def add_tune_compare_parser(subparsers) -> argparse.ArgumentParser:
+  """Adds `tune-compare`: which surrogate's optimum tracks the mIoU optimum of a β sweep."""
+  parser = subparsers.add_parser(
+      "tune-compare", help="compare the tuning objectives against a β sweep's mIoU optimum",
+      description="Tunes β by gradient with each objective (soft IoU, cross-entropy) on "
+                  "calibration layouts, sweeps a β grid on calibration and held-out layouts, "
+                  "and reports where each objective's optimum lands relative to the mIoU "
+                  "optimum (writes compare.md/.json/.png under --out).")
+  _add_protocol_args(parser)
+  parser.add_argument("--init-beta", type=float, default=0.3)
+  parser.add_argument("--num-betas", type=int, default=21, help="grid 0..1")
+  parser.set_defaults(func=tune_compare_command)
+  return parser
+
+
+def add_tune_protocol_parser(subparsers) -> argparse.ArgumentParser:
+  """Adds `tune-protocol`: scalar β*, per-class β* and β = 0.3 on held-out layouts."""
+  parser = subparsers.add_parser(
+      "tune-protocol", help="tune scalar and per-class β on calibration layouts, judge them "
+                            "against β = 0.3 on held-out layouts with bootstrap intervals",
+      description="Tunes β (one scalar, and one per class) by gradient on the calibration "
+                  "layout seeds, fuses the held-out layout seeds with β = 0.3, β* and the "
+                  "per-class β*, and reports held-out mIoU with bootstrap intervals over "
+                  "sequences (writes protocol.md/.json and per_class_beta.png under --out).")
+  _add_protocol_args(parser)
+  parser.add_argument("--objective", choices=OBJECTIVES, default=DEFAULT_OBJECTIVE)
+  parser.add_argument("--baseline-beta", type=float, default=0.3)
+  parser.add_argument("--resamples", type=int, default=stats.DEFAULT_RESAMPLES,
+                      help="bootstrap resamples")
+  parser.set_defaults(func=tune_protocol_command)
+  return parser
+
+
+def sweep_command(args) -> int:
+  """Runs `jaxfusion sweep`; returns the exit status."""
+  data = load_calibration_sequence(args.sequence, seed=args.seed,
+                                   **_data_kwargs(args, _front_end(args)))
+  betas = np.linspace(args.beta_min, args.beta_max, args.num_betas)
+  start = time.perf_counter()
+  out = sweep_beta(data["frames"], data["camera"], data["gt"]["coords"], data["gt"]["labels"],
+                   betas=betas, rule=args.rule, capacity=data["capacity"],
+                   voxel_size=args.voxel_size, mesh=_mesh(args), aggregate=args.aggregate)
+  seconds = time.perf_counter() - start
+  best = int(np.nanargmax(out["miou"]))
+  print(f"{data['name']} ({data['source']}), rule {args.rule}, aggregate={args.aggregate}: "
+        f"{len(betas)} β in one call, {seconds:.1f} s including compilation")
+  print("   beta    mIoU     acc   xent  1-softIoU")
+  for b, m, a, l, q in zip(out["beta"], out["miou"], out["accuracy"], out["loss"],
+                           out["soft_iou_loss"]):
+    print(f"  {b:5.3f}  {100 * m:6.2f}  {100 * a:6.2f}  {l:6.3f}  {q:6.4f}")
+  print(f"best β = {out['beta'][best]:.3f}: mIoU {100 * out['miou'][best]:.2f}; surrogate "
+        f"minima: cross-entropy at β = {out['beta'][int(np.nanargmin(out['loss']))]:.3f}, soft "
+        f"IoU at β = {out['beta'][int(np.nanargmin(out['soft_iou_loss']))]:.3f}")
+  if args.plot:
+    import matplotlib  # pylint: disable=import-outside-toplevel
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.plot(out["beta"], 100 * out["miou"], "o-", ms=3)
+    ax.set_xlabel("β")
+    ax.set_ylabel("mIoU (%)")
+    ax.set_title(f"{data['name']}, {args.rule} ({args.aggregate})")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(args.plot, dpi=120)
+    plt.close(fig)
+    print(f"wrote {args.plot}")
+  _write_json(args.json, {
+      "sequence": data["name"], "source": data["source"], "rule": args.rule,
+      "aggregate": args.aggregate, "seconds": seconds, "beta": out["beta"].tolist(),
+      "miou": out["miou"].tolist(), "accuracy": out["accuracy"].tolist(),
+      "loss": out["loss"].tolist(), "soft_iou_loss": out["soft_iou_loss"].tolist()})
+  return 0
+
+
+def _fmt(value) -> str:
+  v = np.asarray(value)
+  return f"{float(v):.4g}" if v.ndim == 0 else "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+
+
+def tune_beta_command(args) -> int:
+  """Runs `jaxfusion tune-beta`; returns the exit status."""
+  train = tuple(t.strip() for t in args.tune.split(",") if t.strip())
+  kwargs = _data_kwargs(args, _front_end(args))
+  cal = load_calibration_sequence(args.calibration, seed=args.seed, **kwargs)
+  start = time.perf_counter()
+  result = tune_hparams(cal["frames"], cal["camera"], cal["gt"]["coords"],
+                        cal["gt"]["labels"], rule=args.rule, init={"beta": args.init_beta},
+                        train=train, steps=args.steps, learning_rate=args.learning_rate,
+                        capacity=cal["capacity"], voxel_size=args.voxel_size,
+                        aggregate=args.aggregate, objective=args.objective,
+                        per_class=args.per_class)
+  seconds = time.perf_counter() - start
+  print(f"calibration {cal['name']} ({cal['source']}), rule {args.rule}, "
+        f"aggregate={args.aggregate}, objective {args.objective}: {args.steps} Adam steps in "
+        f"{seconds:.1f} s")
+  print(f"  loss {result.losses[0]:.4f} -> {result.losses[-1]:.4f}; fitted "
+        + ", ".join(f"{k} = {_fmt(result.hparams[k])}" for k in train))
+  baseline = rules_lib.by_name(args.rule, beta=args.baseline_beta, aggregate=args.aggregate)
+  held_out = []
+  for spec in [s.strip() for s in args.held_out.split(",") if s.strip()]:
+    data = load_calibration_sequence(spec, seed=args.seed, **kwargs)
+    base_out, tuned_out = evaluate_rules(
+        [baseline, result.rule], data["frames"], data["camera"], data["gt"]["coords"],
+        data["gt"]["labels"], capacity=data["capacity"], voxel_size=args.voxel_size,
+        mesh=_mesh(args))
+    held_out.append({"sequence": data["name"],
+                     "miou_baseline": float(base_out["miou"]),
+                     "miou_tuned": float(tuned_out["miou"]),
+                     "accuracy_baseline": float(base_out["accuracy"]),
+                     "accuracy_tuned": float(tuned_out["accuracy"])})
+    print(f"  {data['name']:>18}: mIoU {100 * held_out[-1]['miou_baseline']:6.2f} at β = "
+          f"{args.baseline_beta:.3f}, {100 * held_out[-1]['miou_tuned']:6.2f} at β*")
+  if held_out:
+    mean_base = float(np.mean([h["miou_baseline"] for h in held_out]))
+    mean_tuned = float(np.mean([h["miou_tuned"] for h in held_out]))
+    print(f"  {'mean':>18}: mIoU {100 * mean_base:6.2f} at β = {args.baseline_beta:.3f}, "
+          f"{100 * mean_tuned:6.2f} at β*")
+  _write_json(args.json, {
+      "calibration": cal["name"], "source": cal["source"], "rule": args.rule,
+      "aggregate": args.aggregate, "objective": args.objective, "per_class": args.per_class,
+      "hparams": result.hparams, "losses": result.losses.tolist(),
+      "beta_path": result.path.get("beta", np.array([])).tolist(),
+      "seconds": seconds, "held_out": held_out})
+  return 0
+
+
+def _protocol_batches(args) -> tuple:
+  overlap = set(args.calibration_seeds) & set(args.held_out_seeds)
+  if overlap:
+    raise ValueError(f"calibration and held-out layout seeds must be disjoint; both have "
+                     f"{sorted(overlap)}")
+  kwargs = _data_kwargs(args, _front_end(args))
+  units = lambda seeds: [(e, t, s) for s in seeds for e in args.envs for t in args.trajectories]
+  return (load_sequence_batch(units(args.calibration_seeds), **kwargs),
+          load_sequence_batch(units(args.held_out_seeds), **kwargs))
+
+
+def tune_compare_command(args) -> int:
+  """Runs `jaxfusion tune-compare`; returns the exit status."""
+  import os  # pylint: disable=import-outside-toplevel
+  cal, held = _protocol_batches(args)
+  result = compare_objectives(cal, held, rule=args.rule,
+                              betas=np.round(np.linspace(0.0, 1.0, args.num_betas), 4),
+                              steps=args.steps, learning_rate=args.learning_rate,
+                              init_beta=args.init_beta, aggregate=args.aggregate,
+                              voxel_size=args.voxel_size, mesh=_mesh(args))
+  table = format_comparison(result)
+  print(table)
+  os.makedirs(args.out, exist_ok=True)
+  _write_text(os.path.join(args.out, "compare.md"), table + "\n")
+  plot_comparison(os.path.join(args.out, "compare.png"), result)
+  _write_json(args.json or os.path.join(args.out, "compare.json"), result)
+  print(f"wrote {args.out}/compare.md, compare.png")
+  return 0
+
+
+def tune_protocol_command(args) -> int:
+  """Runs `jaxfusion tune-protocol`; returns the exit status."""
+  import os  # pylint: disable=import-outside-toplevel
+  from jaxfusion import datasets  # pylint: disable=import-outside-toplevel
+  cal, held = _protocol_batches(args)
+  result = tune_protocol(cal, held, rule=args.rule, objective=args.objective,
+                         baseline_beta=args.baseline_beta, steps=args.steps,
+                         learning_rate=args.learning_rate, aggregate=args.aggregate,
+                         voxel_size=args.voxel_size, num_resamples=args.resamples,
+                         mesh=_mesh(args))
+  names = list(datasets.CLASS_NAMES)[:cal["num_classes"]]
+  table = format_protocol(result, names)
+  print(table)
+  os.makedirs(args.out, exist_ok=True)
+  _write_text(os.path.join(args.out, "protocol.md"), table + "\n")
+  plot_per_class_beta(os.path.join(args.out, "per_class_beta.png"), result, names)
+  _write_json(args.json or os.path.join(args.out, "protocol.json"),
+              dict(result, class_names=names, settings={
+                  "frames": args.frames, "height": args.height, "width": args.width,
+                  "num_samples": args.num_samples, "shift": args.shift,
+                  "front_end": args.front_end, "voxel_size": args.voxel_size}))
+  print(f"wrote {args.out}/protocol.md, per_class_beta.png")
+  return 0
