@@ -5,7 +5,7 @@ operations. Pixels are grouped by one `np.unique` over their keys packed into on
 per-voxel sums and maxes are `np.add.reduceat` / `np.maximum.reduceat` over the sorted pixels,
 and the map is a Python dict from packed key to a row of dense `(C, K)` arrays (looked up once
 per voxel per frame, which is the fastest map NumPy offers without a C extension). It follows
-SPEC.md for all six rules and both aggregation modes.
+docs/equations.md for all six rules and both aggregation modes.
 
 Shape legend: H×W pixels, N = H·W, K classes, U voxels in a frame, C slots.
 """
@@ -28,7 +28,7 @@ class NumpyMap:
     num_classes: K.
     rule: one of `RULES`.
     voxel_size: voxel edge in metres.
-    beta, eps, alpha0: the robust rules' hyperparameters (SPEC.md defaults).
+    beta, eps, alpha0: the robust rules' hyperparameters (docs/equations.md §3.8 defaults).
     aggregate: "sum" (the paper's Σ_j) or "mean".
     capacity: initial number of rows (the arrays double when full).
   """

@@ -145,15 +145,15 @@ def fuse_frame_row(frames, rule_name, *, capacity, repeats, voxel_size, public=T
   dev_frames = _device_frames(frames)
   state = jf.init_map(capacity=capacity, num_classes=k, voxel_size=voxel_size, rule=rule)
   t0 = time.perf_counter()
-  jitted = fusion._fuse_frame_jit  # pylint: disable=protected-access
+  jitted = fusion.fuse_frame_donating
   compiled = jitted.lower(state, dev_frames[0], frames.camera, rule).compile()
   compile_s = time.perf_counter() - t0
-  fn = jf.fuse_frame if public else fusion._fuse_frame_jit  # pylint: disable=protected-access
+  fn = jf.fuse_frame if public else fusion.fuse_frame_donating
   fuser = _Fuser(state, dev_frames, frames.camera, rule, fn)
   seconds = median_time(fuser, repeats)
   core_seconds = None
   if public:
-    fuser.fn = fusion._fuse_frame_jit  # pylint: disable=protected-access
+    fuser.fn = fusion.fuse_frame_donating
     core_seconds = median_time(fuser, repeats)
   points = float(np.mean(np.sum(frames.depth > 0, axis=(1, 2))))
   return {
@@ -176,7 +176,7 @@ def numpy_row(frames, rule_name, *, repeats, voxel_size, capacity=2**20) -> dict
   rule = jf.rules.by_name(rule_name)
   fuser = _Fuser(jf.init_map(capacity=capacity, num_classes=k, voxel_size=voxel_size,
                              rule=rule), _device_frames(frames), frames.camera, rule,
-                 fusion._fuse_frame_jit)  # pylint: disable=protected-access
+                 fusion.fuse_frame_donating)
   t = [0]
 
   def step():
@@ -231,7 +231,7 @@ def capacity_rows(frames, config) -> list:
     for fill in config.fills:
       state = _filled_state(capacity, fill, k, rule, config.voxel_size)
       fuser = _Fuser(state, dev_frames, frames.camera, rule,
-                     fusion._fuse_frame_jit)  # pylint: disable=protected-access
+                     fusion.fuse_frame_donating)
       seconds = median_time(fuser, config.repeats)
       rows.append({"capacity": capacity, "fill": fill,
                    "load_after": int(fuser.state.num_occupied) / capacity,
@@ -260,7 +260,7 @@ def sequence_row(frames, config) -> dict:
                                  voxel_size=config.voxel_size, rule=rule)}
 
   def step():
-    holder["state"] = fusion._fuse_sequence_jit(  # pylint: disable=protected-access
+    holder["state"] = fusion.fuse_sequence_donating(
         holder["state"], stacked, frames.camera, rule)
     return holder["state"]
 

@@ -32,6 +32,7 @@ from jaxfusion.rules import FusionRule
 from jaxfusion.sources import mc_moments
 from jaxfusion.state import MapFullWarning
 from jaxfusion.state import MapState
+from jaxfusion.state import capacity_for
 from jaxfusion.state import init_map
 from jaxfusion.state import map_stats
 from jaxfusion.tune import calibration_loss
@@ -42,7 +43,7 @@ __version__ = "0.1.0"
 
 __all__ = sorted([
     "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch", "datasets",
-    "calibration_loss", "fuse_batch", "fuse_frame", "io", "fuse_sequence", "fuse_sweep", "init_map",
+    "calibration_loss", "capacity_for", "fuse_batch", "fuse_frame", "io", "fuse_sequence", "fuse_sweep", "init_map",
     "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid", "rules",
     "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
 ])

@@ -141,7 +141,7 @@ def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera
   state = state_lib.init_map(capacity=capacity, num_classes=num_classes, voxel_size=voxel_size,
                              rule=rule, max_probes=max_probes)
   depth = jnp.where(mask[:, None, None], jnp.asarray(frames.depth, jnp.float32), 0.0)
-  return fusion._fuse_sequence(state, frames._replace(depth=depth), camera, rule)  # pylint: disable=protected-access
+  return fusion.fuse_sequence_unchecked(state, frames._replace(depth=depth), camera, rule)
 
 
 def map_over(fn, *, frames_axis: bool, rule_axis: bool, camera_axis: bool):
@@ -217,7 +217,7 @@ def _on_host(x):
   return x if isinstance(x, jax.core.Tracer) else np.asarray(x)
 
 
-def _pad_leading(tree, size: int, *, fill=None):
+def pad_leading(tree, size: int, *, fill=None):
   """Pads the leading axis of every leaf to `size`, repeating the last item (or `fill`)."""
 
   def pad(x):
@@ -233,14 +233,17 @@ def _pad_leading(tree, size: int, *, fill=None):
   return jax.tree.map(pad, tree)
 
 
-def _padded_size(n: int, mesh: Optional[Mesh]) -> int:
+def padded_size(n: int, mesh: Optional[Mesh]) -> int:
+  """`n` rounded up to a multiple of the mesh's device count (`n` without a mesh)."""
   if mesh is None:
     return n
   return math.ceil(n / mesh.size) * mesh.size
 
 
 # --- public entry points ----------------------------------------------------------------------
-def _check_batch_frames(frames, mask, rule, *, batch_dims, num_classes):
+def check_batch_frames(frames, mask, rule, *, batch_dims, num_classes):
+  """Validates a batch of frames (`batch_dims` leading axes) for `rule`; returns the bool mask
+  of real frames (all True when `mask` is None). Raises TypeError/ValueError with the reason."""
   if not isinstance(frames, fusion.Frame):
     raise TypeError(f"frames must be a jaxfusion.Frame; got {type(frames).__name__}")
   lead = np.shape(frames.depth)[:batch_dims]
@@ -259,7 +262,7 @@ def _check_batch_frames(frames, mask, rule, *, batch_dims, num_classes):
   return mask
 
 
-def _cameras(camera: CameraArg, batch: Optional[int]):
+def camera_batch(camera: CameraArg, batch: Optional[int]):
   """(camera pytree, batched?) — one shared Camera, or one per sequence stacked."""
   if isinstance(camera, camera_lib.Camera):
     validation.check_camera(camera)
@@ -276,7 +279,7 @@ def num_stacked_rules(rules: rules_base.FusionRule) -> int:
   """R of a stack of rules: the common leading axis of its hyperparameter leaves (`(R,)`, or
   `(R, K)` for per-class values). Raises ValueError for an unstacked rule or ragged lengths."""
   leaves = jax.tree.leaves(rules.hparams)
-  # Leading axis = rules; per-class hyperparameters (SPEC rule 7) add a trailing (K,) axis.
+  # Leading axis = rules; per-class hyperparameters (docs/equations.md §3.7) add a trailing (K,) axis.
   if not leaves or any(np.ndim(x) not in (1, 2) for x in leaves):
     raise ValueError("rules must be a stack of rules with hyperparameters, e.g. "
                      "rules.stack([rules.robust(beta=b) for b in betas]) or rule_grid(...)")
@@ -311,14 +314,14 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
   if not isinstance(rule, rules_base.FusionRule):
     raise TypeError(f"rule must be a FusionRule; got {type(rule).__name__}")
   num_classes = np.shape(frames.probs)[-1] if isinstance(frames, fusion.Frame) else None
-  mask = _check_batch_frames(frames, mask, rule, batch_dims=2, num_classes=num_classes)
+  mask = check_batch_frames(frames, mask, rule, batch_dims=2, num_classes=num_classes)
   batch = mask.shape[0]
-  camera, camera_axis = _cameras(camera, batch)
-  size = _padded_size(batch, mesh)
-  frames = _pad_leading(jax.tree.map(_on_host, frames), size)
-  mask = _pad_leading(mask, size, fill=False)
+  camera, camera_axis = camera_batch(camera, batch)
+  size = padded_size(batch, mesh)
+  frames = pad_leading(jax.tree.map(_on_host, frames), size)
+  mask = pad_leading(mask, size, fill=False)
   if camera_axis:
-    camera = _pad_leading(camera, size)
+    camera = pad_leading(camera, size)
   if mesh is not None:
     frames, mask = put_sharded((frames, mask), mesh, sharded=True)
     camera = put_sharded(camera, mesh, sharded=camera_axis)
@@ -353,11 +356,11 @@ def fuse_sweep(frames: fusion.Frame, camera: CameraArg, rules: rules_base.Fusion
   num_rules = num_stacked_rules(rules)
   num_classes = np.shape(frames.probs)[-1] if isinstance(frames, fusion.Frame) else None
   batch_dims = 2 if np.ndim(getattr(frames, "depth", None)) == 4 else 1
-  mask = _check_batch_frames(frames, mask, rules, batch_dims=batch_dims,
+  mask = check_batch_frames(frames, mask, rules, batch_dims=batch_dims,
                              num_classes=num_classes)
-  camera, camera_axis = _cameras(camera, mask.shape[0] if batch_dims == 2 else None)
-  size = _padded_size(num_rules, mesh)
-  rules = _pad_leading(rules, size)
+  camera, camera_axis = camera_batch(camera, mask.shape[0] if batch_dims == 2 else None)
+  size = padded_size(num_rules, mesh)
+  rules = pad_leading(rules, size)
   frames = jax.tree.map(_on_host, frames)
   if mesh is not None:
     frames, mask, camera = put_sharded((frames, mask, camera), mesh, sharded=False)

@@ -253,8 +253,13 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
   return update
 
 
-def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
-                rule: rules_base.FusionRule) -> MapState:
+def fuse_frame_unchecked(state: MapState, frame: Frame, camera: camera_lib.Camera,
+                         rule: rules_base.FusionRule) -> MapState:
+  """`fuse_frame`'s pure body: no input checks, not jitted, nothing donated.
+
+  For code that composes the engine inside its own traced function (`batch`, `tune`, a user's
+  `jax.jit`); call `fuse_frame` everywhere else. Same arguments and result as `fuse_frame`.
+  """
   height, width, num_classes = frame.probs.shape
   n = height * width
 
@@ -300,8 +305,10 @@ def _fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
   return state.replace(rows=rows)
 
 
-_fuse_frame_jit = jax.jit(_fuse_frame, donate_argnums=0)
-_fuse_frame_keep = jax.jit(_fuse_frame)
+# `fuse_frame_unchecked` compiled, with the map's buffers donated (what `fuse_frame` calls on
+# concrete arrays), and without donation (under a transformation).
+fuse_frame_donating = jax.jit(fuse_frame_unchecked, donate_argnums=0)
+_fuse_frame_copying = jax.jit(fuse_frame_unchecked)
 
 
 def under_transformation(*trees) -> bool:
@@ -334,7 +341,7 @@ def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
   donated, so a plain Python loop of `fuse_frame` can be differentiated or batched as written.
 
   Every valid pixel is back-projected, pixels are grouped per voxel, and the rule's update is
-  applied once per touched voxel with the frame's reduced observation (SPEC.md's Σ_j). Voxels
+  applied once per touched voxel with the frame's reduced observation (the Σ_j of docs/equations.md §2.4). Voxels
   that cannot be placed because the map is full are dropped and counted in `num_dropped`.
 
   Input checks cost microseconds: shapes, dtypes and the pose are checked in full, the signs of
@@ -358,19 +365,20 @@ def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
   """
   _check_inputs(state, frame, camera, rule, batch_dims=0, sample=True)
   if under_transformation(state, frame, camera, rule):
-    return _fuse_frame_keep(state, frame, camera, rule)
-  return _fuse_frame_jit(state, frame, camera, rule)
+    return _fuse_frame_copying(state, frame, camera, rule)
+  return fuse_frame_donating(state, frame, camera, rule)
 
 
-def _fuse_sequence(state, frames, camera, rule):
+def fuse_sequence_unchecked(state, frames, camera, rule):
+  """`fuse_sequence`'s pure body: one `lax.scan` of `fuse_frame_unchecked`, no checks."""
   def step(s, frame):
-    return _fuse_frame(s, frame, camera, rule), None
+    return fuse_frame_unchecked(s, frame, camera, rule), None
   state, _ = jax.lax.scan(step, state, frames)
   return state
 
 
-_fuse_sequence_jit = jax.jit(_fuse_sequence, donate_argnums=0)
-_fuse_sequence_keep = jax.jit(_fuse_sequence)
+fuse_sequence_donating = jax.jit(fuse_sequence_unchecked, donate_argnums=0)
+_fuse_sequence_copying = jax.jit(fuse_sequence_unchecked)
 
 
 def fuse_sequence(state: MapState, frames: Frame, camera: camera_lib.Camera,
@@ -392,5 +400,5 @@ def fuse_sequence(state: MapState, frames: Frame, camera: camera_lib.Camera,
   """
   _check_inputs(state, frames, camera, rule, batch_dims=1)
   if under_transformation(state, frames, camera, rule):
-    return _fuse_sequence_keep(state, frames, camera, rule)
-  return _fuse_sequence_jit(state, frames, camera, rule)
+    return _fuse_sequence_copying(state, frames, camera, rule)
+  return fuse_sequence_donating(state, frames, camera, rule)

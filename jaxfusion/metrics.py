@@ -1,5 +1,12 @@
-"""Map quality on voxels: confusion matrix, per-class IoU, mIoU and accuracy (the columns of the
-paper's Tables I and II).
+"""Quality measures, each written once: the confusion matrix, per-class IoU, the map mIoU and
+accuracy on voxels (the columns of the paper's Tables I and II), the per-frame mIoU of a
+segmentation on pixels, and the AUROC of a score as a detector.
+
+Two mIoUs go by different names on purpose:
+- `mean_iou` (the **map mIoU**): over voxels, averaged over the classes present in the GT;
+- `per_frame_miou` (the **per-frame mIoU**): over each frame's pixels, averaged over the
+  classes present in that frame's truth or prediction, then over frames (`pixel_miou` is the
+  same average over one pooled confusion matrix).
 
 Convention (as in the paper and the authors' evaluation): a voxel is scored where both the map
 and the ground truth have it; GT is the majority label of the GT pixels that fell in the voxel.
@@ -66,6 +73,88 @@ def mean_iou(cm: np.ndarray) -> float:
   if not np.any(present):
     return float("nan")
   return float(np.mean(np.nan_to_num(iou_from_confusion(cm)[present])))
+
+
+def pixel_miou(cm: np.ndarray) -> float:
+  """Mean IoU over the classes present in the truth *or* the prediction (a segmentation's mIoU;
+  NaN when there is none)."""
+  iou = iou_from_confusion(cm)
+  return float(np.nanmean(iou)) if np.isfinite(iou).any() else float("nan")
+
+
+def per_frame_miou(pred: np.ndarray, labels: np.ndarray, num_classes: int) -> float:
+  """Mean over frames of each frame's own `pixel_miou` (the per-frame mIoU of a front end).
+
+  Args:
+    pred: `(N, H, W)` int predictions; values are clipped into `[0, K)`.
+    labels: `(N, H, W)` int ground truth; values outside `[0, K)` are ignored.
+    num_classes: K.
+
+  Returns:
+    The average per-frame mIoU; NaN when no frame has a labelled pixel.
+  """
+  pred, labels = np.asarray(pred), np.asarray(labels)
+  if pred.shape != labels.shape or pred.ndim != 3:
+    raise ValueError(f"per_frame_miou expects (N, H, W) pred and labels; got {pred.shape}, "
+                     f"{labels.shape}")
+  values = []
+  for p, y in zip(pred, labels):
+    y = y.ravel().astype(np.int64)
+    p = np.clip(p.ravel().astype(np.int64), 0, num_classes - 1)
+    values.append(pixel_miou(confusion_matrix(y, p, num_classes)))
+  values = [v for v in values if np.isfinite(v)]
+  return float(np.mean(values)) if values else float("nan")
+
+
+def auroc(scores, positives) -> float:
+  """Area under the ROC curve of `scores` as a detector of `positives` (ties count half).
+
+  The probability that a random positive scores higher than a random negative, plus half the
+  probability of a tie (Mann–Whitney U / (n_pos · n_neg), average ranks).
+
+  Args:
+    scores: float scores of any shape.
+    positives: bool of the same shape.
+
+  Returns:
+    The AUROC; NaN when either class is empty.
+  """
+  scores = np.asarray(scores, np.float64).ravel()
+  positives = np.asarray(positives, bool).ravel()
+  if scores.shape != positives.shape:
+    raise ValueError(f"scores {scores.shape} and positives {positives.shape} differ")
+  n_pos = int(positives.sum())
+  n_neg = positives.size - n_pos
+  if n_pos == 0 or n_neg == 0:
+    return float("nan")
+  _, inverse, counts = np.unique(scores, return_inverse=True, return_counts=True)
+  average_rank = np.cumsum(counts) - (counts - 1) / 2.0  # 1-based, ties averaged.
+  rank_sum = average_rank[inverse][positives].sum()
+  return float((rank_sum - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
+
+
+def auroc_of_samples(positive_scores, negative_scores) -> float:
+  """`auroc` given the scores of the positives and of the negatives as two arrays."""
+  pos, neg = np.ravel(positive_scores), np.ravel(negative_scores)
+  return auroc(np.concatenate([pos, neg]), np.arange(pos.size + neg.size) < pos.size)
+
+
+def auroc_from_histograms(counts) -> np.ndarray:
+  """`auroc` from binned scores: P(positive's bin > negative's bin) + ½ P(same bin).
+
+  Args:
+    counts: `(..., 2, B)` counts per bin (bins in increasing score), positives then negatives.
+
+  Returns:
+    `(...)` AUROC (NaN without positives or without negatives).
+  """
+  counts = np.asarray(counts, np.float64)
+  pos, neg = counts[..., 0, :], counts[..., 1, :]
+  below = np.cumsum(neg, axis=-1) - neg
+  num = (pos * (below + 0.5 * neg)).sum(-1)
+  den = pos.sum(-1) * neg.sum(-1)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
 
 
 def accuracy(cm: np.ndarray) -> float:

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# Floor applied before taking the log of a probability (SPEC.md: "log(max(p, tiny))"), so that a
+# Floor applied before taking the log of a probability (docs/equations.md §5.1: "log(max(p, tiny))"), so that a
 # hard zero never gives -inf. The smallest normal float32: log(TINY) ≈ -87.3.
 PROB_FLOOR = float(np.finfo(np.float32).tiny)
 

@@ -69,6 +69,7 @@ from jax.scipy import special
 
 from jaxfusion import camera as camera_lib
 from jaxfusion import hashing
+from jaxfusion import metrics
 
 REGIONS = ("objects", "patches", "both")
 # Parameters a sweep may vary (every field of ErrorModel).
@@ -446,21 +447,6 @@ def simulate_sequence(key: jax.Array, labels, instance_ids, *, num_classes: int,
 
 
 # --- statistics of a simulated sequence -------------------------------------------------------
-def auroc(scores_positive: np.ndarray, scores_negative: np.ndarray) -> float:
-  """P(score of a positive > score of a negative) + ½ P(tie) (Mann–Whitney, average ranks)."""
-  pos = np.asarray(scores_positive, np.float64).reshape(-1)
-  neg = np.asarray(scores_negative, np.float64).reshape(-1)
-  if not len(pos) or not len(neg):
-    return float("nan")
-  values, inverse, counts = np.unique(np.concatenate([pos, neg]), return_inverse=True,
-                                      return_counts=True)
-  del values
-  ends = np.cumsum(counts)
-  average_rank = ends - (counts - 1) / 2.0          # 1-based average rank of each value
-  rank_sum = float(np.sum(average_rank[inverse[:len(pos)]]))
-  return (rank_sum - len(pos) * (len(pos) + 1) / 2.0) / (len(pos) * len(neg))
-
-
 def view_statistics(view: SimulatedView, valid) -> dict:
   """Realised error rate and α = −log var of the favoured class, right vs wrong pixels.
 
@@ -482,4 +468,4 @@ def view_statistics(view: SimulatedView, valid) -> dict:
   med_w = float(np.median(wrong_a)) if len(wrong_a) else float("nan")
   return {"error_rate": float(np.mean(wrong)) if len(wrong) else float("nan"),
           "alpha_right_median": med_r, "alpha_wrong_median": med_w,
-          "alpha_separation": med_r - med_w, "auroc": auroc(right_a, wrong_a)}
+          "alpha_separation": med_r - med_w, "auroc": metrics.auroc_of_samples(right_a, wrong_a)}

@@ -50,6 +50,18 @@ class MapState:
     return jax.tree.leaves(self.rows)[0].shape[-1]
 
 
+def capacity_for(num_voxels: int, *, load: float = 0.25, minimum: int = 1024) -> int:
+  """The smallest power-of-two capacity that holds `num_voxels` at load factor ≤ `load`.
+
+  `capacity_for(n)` is the map size the commands give a sequence with n GT voxels (4n slots,
+  at least `minimum`); keep the load factor below ~0.7 (README: a full map drops voxels).
+  """
+  if not 0.0 < load <= 1.0:
+    raise ValueError(f"load must lie in (0, 1]; got {load}")
+  need = max(int(math.ceil(int(num_voxels) / load)), 2)
+  return max(int(minimum), 1 << (need - 1).bit_length())
+
+
 def _check_positive_int(value, name):
   if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
     raise ValueError(f"{name} must be a positive integer; got {value!r}")

@@ -228,7 +228,7 @@ def sweep(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_labels,
   num_rules = batch.num_stacked_rules(rules)
   batch_dims = 2 if np.ndim(frames.depth) == 4 else 1
   num_classes = np.shape(frames.probs)[-1]
-  mask = batch._check_batch_frames(frames, mask, rules, batch_dims=batch_dims,  # pylint: disable=protected-access
+  mask = batch.check_batch_frames(frames, mask, rules, batch_dims=batch_dims,
                                    num_classes=num_classes)
   coords = np.asarray(gt_coords, np.int32)
   labels = np.asarray(gt_labels, np.int32)
@@ -236,9 +236,9 @@ def sweep(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_labels,
   if coords.shape[:-2] != lead or coords.shape[-1] != 3 or labels.shape != coords.shape[:-1]:
     raise ValueError(f"GT must be coords {lead + ('N', 3)} and labels {lead + ('N',)}; got "
                      f"{coords.shape} and {labels.shape}")
-  camera, _ = batch._cameras(camera, None)  # pylint: disable=protected-access
-  size = batch._padded_size(num_rules, mesh)  # pylint: disable=protected-access
-  rules = batch._pad_leading(rules, size)  # pylint: disable=protected-access
+  camera, _ = batch.camera_batch(camera, None)
+  size = batch.padded_size(num_rules, mesh)
+  rules = batch.pad_leading(rules, size)
   frames = jax.tree.map(np.asarray, frames)
   if mesh is not None:
     frames, mask, camera, coords, labels = batch.put_sharded(
@@ -422,7 +422,7 @@ def tune_hparams(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_
     objective: the surrogate to minimise: "soft_iou" (`1 − soft mIoU` of the fused voxel
       posteriors, pooled over the sequences) or "cross_entropy" (`calibration_loss`, averaged
       over the sequences); see `compare_objectives` for how their optima track the mIoU's.
-    per_class: fit one value per class (`(K,)`, SPEC rule 7) for every hyperparameter in
+    per_class: fit one value per class (`(K,)`, docs/equations.md §3.7) for every hyperparameter in
       `train`, starting from `init` broadcast to K.
 
   Returns:
@@ -456,11 +456,11 @@ def tune_hparams(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_
   rules_lib.by_name(rule, aggregate=aggregate, **{k: v for k, v in hparams.items()
                                                   if k not in train})   # checks fixed values
   batch_dims = 2 if np.ndim(frames.depth) == 4 else 1
-  mask = batch._check_batch_frames(frames, mask, probe, batch_dims=batch_dims,  # pylint: disable=protected-access
+  mask = batch.check_batch_frames(frames, mask, probe, batch_dims=batch_dims,
                                    num_classes=num_classes)
   params = unconstrain({k: hparams[k] for k in train})
   fixed = {k: jnp.asarray(v, jnp.float32) for k, v in hparams.items() if k not in train}
-  camera, _ = batch._cameras(camera, None)  # pylint: disable=protected-access
+  camera, _ = batch.camera_batch(camera, None)
   final, losses, path, grads = _tune_loop(
       params, fixed, jnp.float32(learning_rate), jax.tree.map(jnp.asarray, frames),
       jnp.asarray(mask), camera, jnp.asarray(gt_coords, jnp.int32),
@@ -530,7 +530,7 @@ def evaluate_rules(rules: Sequence[rules_lib.FusionRule], frames: fusion.Frame,
   """Scores each rule of a list (scalar and per-class rules may be mixed) on the same data.
 
   Rules whose hyperparameters have the same shapes are stacked and scored in one `sweep` call,
-  so a scalar rule is scored with its scalar (bit-exact rule 4) path, never as a broadcast
+  so a scalar rule is scored with its scalar (bit-exact, docs/equations.md §3.4) path, never as a broadcast
   vector.
 
   Returns:

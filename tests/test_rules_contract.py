@@ -149,8 +149,8 @@ def test_no_recompilation_on_second_call(name):
   rng = np.random.default_rng(10)
   rule, state = make(name)
   state = jf.fuse_frame(state, h.random_frame(rng), h.CAMERA, rule)
-  before = fusion._fuse_frame_jit._cache_size()
+  before = fusion.fuse_frame_donating._cache_size()
   other = jf.rules.by_name(name, **h.rule_kwargs(name, beta=0.55, eps=1e-5, alpha0=3.0))
   state = jf.fuse_frame(state, h.random_frame(rng), h.CAMERA, other)
   state = jf.fuse_frame(state, h.random_frame(rng), jf.Camera(7.0, 6.5, 3.0, 2.0), rule)
-  assert fusion._fuse_frame_jit._cache_size() == before
+  assert fusion.fuse_frame_donating._cache_size() == before

@@ -1,7 +1,7 @@
-"""Per-class hyperparameters (SPEC rule 7): β, ε and α₀ given as `(K,)` vectors.
+"""Per-class hyperparameters (docs/equations.md §3.7): β, ε and α₀ given as `(K,)` vectors.
 
 Against the independent NumPy reference on random multi-frame sequences, a hand-computed
-regularisation, the scalar path kept bit-identical to rule 4, all-equal per-class β equal to the
+regularisation, the scalar path kept bit-identical to R (§3.4), all-equal per-class β equal to the
 scalar, and the contract (jit, vmap over a stack, grad against finite differences, no
 recompilation, clear errors)."""
 
@@ -118,10 +118,10 @@ def test_jit_vmap_over_a_stack_and_no_recompilation():
                                atol=1e-6)
   # Same shapes, other values: the jitted fuse_frame is reused.
   state = fuse(jf.rules.robust(beta=BETA, alpha0=ALPHA0), frames[:1])
-  before = fusion._fuse_frame_jit._cache_size()  # pylint: disable=protected-access
+  before = fusion.fuse_frame_donating._cache_size()  # pylint: disable=protected-access
   other = jf.rules.robust(beta=[0.9, 0.1, 0.2, 0.0], alpha0=[1.0] * K)
   fuse(other, frames[1:], state)
-  assert fusion._fuse_frame_jit._cache_size() == before  # pylint: disable=protected-access
+  assert fusion.fuse_frame_donating._cache_size() == before  # pylint: disable=protected-access
 
 
 def test_grad_of_per_class_vectors_matches_finite_differences():

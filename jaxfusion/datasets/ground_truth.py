@@ -16,10 +16,6 @@ import numpy as np
 from jaxfusion import fusion, readout, rules, state as state_lib
 
 
-def _next_pow2(n: int) -> int:
-  return 1 << max(int(n) - 1, 1).bit_length()
-
-
 def count_voxels(sequence, *, voxel_size: float) -> int:
   """Number of distinct voxels hit by the valid, labelled pixels of a sequence (NumPy)."""
   keys = []
@@ -59,7 +55,7 @@ def gt_voxel_labels(sequence, *, voxel_size: float = 0.1, capacity=None) -> dict
     raise ValueError(f"sequence {sequence.name!r} has no ground-truth labels")
   num_classes = sequence.num_classes
   if capacity is None:
-    capacity = max(1024, _next_pow2(2 * count_voxels(sequence, voxel_size=voxel_size)))
+    capacity = state_lib.capacity_for(count_voxels(sequence, voxel_size=voxel_size), load=0.5)
   rule = rules.sum_labels()
   state = state_lib.init_map(capacity=capacity, num_classes=num_classes, voxel_size=voxel_size,
                              rule=rule)

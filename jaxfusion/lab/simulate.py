@@ -32,7 +32,6 @@ from jaxfusion import tune
 from jaxfusion.simulation import REGIONS
 from jaxfusion.simulation import SWEEP_PARAMS
 from jaxfusion.simulation import ErrorModel
-from jaxfusion.simulation import auroc
 from jaxfusion.simulation import check_frame_arrays
 from jaxfusion.simulation import check_regions
 from jaxfusion.simulation import error_model
@@ -91,10 +90,6 @@ def _sweep_row(key, labels, instance_ids, depth, poses, camera, models, gt_coord
 
 def _stack_models(models: Sequence[ErrorModel]) -> ErrorModel:
   return jax.tree.map(lambda *xs: jnp.stack(xs), *models)
-
-
-def _next_pow2(n: int) -> int:
-  return 1 << max(int(n) - 1, 1).bit_length()
 
 
 def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: str, y_values,
@@ -177,7 +172,7 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
                         lead=(labels.shape[0],))
     gt_coords = jnp.asarray(seq["gt"]["coords"], jnp.int32)
     gt_labels = jnp.asarray(seq["gt"]["labels"], jnp.int32)
-    capacity = max(1024, _next_pow2(4 * len(seq["gt"]["labels"])))
+    capacity = state_lib.capacity_for(len(seq["gt"]["labels"]))
     valid = np.asarray((seq["depth"] > 0) & (seq["labels"] >= 0)
                        & (seq["labels"] < num_classes))
     for d in range(int(num_draws)):
@@ -210,7 +205,7 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
     realised["error_rate"][yi, xi] = t["n_wrong"] / max(t["n"], 1)
     if len(right) and len(wrong):
       realised["alpha_separation"][yi, xi] = np.median(right) - np.median(wrong)
-      realised["auroc"][yi, xi] = auroc(right, wrong)
+      realised["auroc"][yi, xi] = metrics.auroc_of_samples(right, wrong)
   return {"rules": list(SWEEP_RULES), "x_param": x_param, "y_param": y_param,
           "x": x_values, "y": y_values, "base": {k: float(v) for k, v in base.items()},
           "regions": regions, "beta": float(beta), "num_draws": int(num_draws),

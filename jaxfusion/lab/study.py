@@ -360,24 +360,6 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
 
 
 # --- statistics over sequences -----------------------------------------------------------------
-def histogram_auroc(sums) -> np.ndarray:
-  """AUROC of α as a right-vs-wrong score from histograms: P(α_r > α_w) + ½ P(same bin).
-
-  Args:
-    sums: `(..., 2, nb)` counts per bin, right then wrong.
-
-  Returns:
-    `(...)` AUROC (NaN without right or without wrong pixels).
-  """
-  sums = np.asarray(sums, np.float64)
-  r, w = sums[..., 0, :], sums[..., 1, :]
-  below = np.cumsum(w, axis=-1) - w
-  num = (r * (below + 0.5 * w)).sum(-1)
-  den = r.sum(-1) * w.sum(-1)
-  with np.errstate(invalid="ignore", divide="ignore"):
-    return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
-
-
 def histogram_median(counts, edges=ALPHA_EDGES) -> float:
   """Median of a histogram (linear within the bin where the cumulative share crosses ½)."""
   counts = np.asarray(counts, np.float64)
@@ -451,7 +433,7 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
                     for r in seq])
     res["alpha"] = {"median_right": histogram_median(hist[:, 0].sum(0)),
                     "median_wrong": histogram_median(hist[:, 1].sum(0)),
-                    "auroc": _iv(stats.bootstrap(hist, histogram_auroc, **kw)),
+                    "auroc": _iv(stats.bootstrap(hist, metrics.auroc_from_histograms, **kw)),
                     "right_share": _iv(stats.bootstrap(pix, stats.ratio, **kw))}
     out[f"{float(shift):g}"] = res
   return out

@@ -22,6 +22,7 @@ from jaxfusion import fusion
 from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
 from jaxfusion import sources
+from jaxfusion import state as state_lib
 from jaxfusion.lab import stats
 from jaxfusion.tune import DEFAULT_OBJECTIVE
 from jaxfusion.tune import OBJECTIVES
@@ -36,10 +37,6 @@ from jaxfusion.tune import tune_hparams
 # --- data: embedded sequences with a simulated network or the shipped one ----------------------
 DEFAULT_CACHE_DIR = "outputs/cache"
 FRONT_ENDS = ("simulated", "shipped")
-
-
-def _next_pow2(n: int) -> int:
-  return 1 << max(int(n) - 1, 1).bit_length()
 
 
 def _parse_spec(spec: str) -> tuple[str, int]:
@@ -117,7 +114,7 @@ def load_calibration_sequence(spec: str, *, num_frames: int, height: int, width:
                         None if var is None else np.asarray(var, np.float32))
   return {"name": f"{seq.name}_s{seed}", "frames": frames, "camera": seq.camera, "gt": gt,
           "num_classes": num_classes, "source": source,
-          "capacity": max(1024, _next_pow2(4 * len(gt["labels"])))}
+          "capacity": state_lib.capacity_for(len(gt["labels"]))}
 
 
 def load_sequence_batch(units: Sequence[tuple], **kwargs) -> dict:
@@ -303,7 +300,7 @@ def tune_protocol(calibration: dict, held_out: dict, *, rule: str = "D+R",
   """Scalar β*, per-class β* and the paper's β side by side on held-out sequences.
 
   β is tuned by gradient (`tune_hparams`, `objective`) on the calibration batch, once as one
-  scalar and once per class (SPEC rule 7); the three rules are then fused on every held-out
+  scalar and once per class (docs/equations.md §3.7); the three rules are then fused on every held-out
   sequence and scored against GT voxel labels. Intervals are percentile bootstraps over the
   held-out sequences (`stats.bootstrap` of the pooled confusion's mIoU), and the differences
   to the baseline are paired bootstraps on the same resamples (`stats.paired_difference`).

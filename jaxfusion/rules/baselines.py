@@ -1,4 +1,4 @@
-"""The three baselines of SPEC.md: sum of probabilities, label voting, and Bayesian fusion."""
+"""The three baselines of docs/equations.md §3.1–§3.3: sum of probabilities, label voting, and Bayesian fusion."""
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +31,7 @@ def sum_probs(*, aggregate: str = "sum") -> base.FusionRule:
   """Sum of probabilities: `S_i += Σ_j p̄_j,i`, posterior `S / ΣS`, label `argmax S`.
 
   Unlike the authors' released code (which adds only the winning class's probability) the whole
-  vector is added, as Fusion++ averages probabilities (SPEC.md).
+  vector is added, as Fusion++ averages probabilities (docs/equations.md §6.6).
   """
   return base.FusionRule(
       hparams={}, name="sum_probs", init=_score_init, observe=_sum_probs_observe,

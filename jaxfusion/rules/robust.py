@@ -9,12 +9,12 @@ and both together, D+R.
        variance at 1e-3; `α₀ = 0` is the literal reading of the equations.
 - D+R: D on p̃.
 
-**Per-class hyperparameters** (SPEC rule 7; the paper's future work). β, ε and α₀ may each be a
+**Per-class hyperparameters** (docs/equations.md §3.7; the paper's future work). β, ε and α₀ may each be a
 scalar or a `(K,)` vector with one value per class:
 - β per class: `p̃_j,i = ((1−β_i) p̄_j,i + β_i/K) / Z_j` with `Z_j = Σ_i ((1−β_i) p̄_j,i + β_i/K)`,
   so p̃_j stays a distribution (it is the class-i mixing weight, not the β of the pixel's
   predicted class, which would make p̃ a non-smooth function of p̄ at argmax ties). A scalar β
-  takes the old path without Z (bit-identical to rule 4); all-equal β_i give Z_j = 1 up to
+  takes the path without Z (bit-identical to R, §3.4); all-equal β_i give Z_j = 1 up to
   rounding.
 - ε per class: `α_j,i = −log(var_j,i + ε_i)` — elementwise already, so free.
 - α₀ per class: `ᾱ_0,i = α₀_i` — natural, because ᾱ is a per-class running maximum.
@@ -25,7 +25,7 @@ A vector whose length is not the map's K raises at `init_map` and when `fuse_fra
 Variances are clipped to [0, 0.25] (the range of a variance of probabilities), so α ≥
 −log(0.25+ε) > 0 and ᾱ > 0 after one hit. The sum over j is taken per frame, which makes the
 update independent of the order of pixels within a frame (the released C++ code fuses pixels one
-at a time and is order-dependent — a deliberate difference, see SPEC.md).
+at a time and is order-dependent — a deliberate difference, see docs/equations.md §6.4).
 """
 
 import math
@@ -47,12 +47,12 @@ PER_CLASS_HPARAMS = ("beta", "eps", "alpha0")
 
 
 def regularize(probs, beta):
-  """`p̃ = (1−β) p + β/K` for a `(K,)` distribution and a scalar β (rule 4); for a per-class
-  `(K,)` β, `p̃_i = ((1−β_i) p_i + β_i/K) / Z` with `Z = Σ_i ((1−β_i) p_i + β_i/K)` (rule 7;
+  """`p̃ = (1−β) p + β/K` for a `(K,)` distribution and a scalar β (§3.4); for a per-class
+  `(K,)` β, `p̃_i = ((1−β_i) p_i + β_i/K) / Z` with `Z = Σ_i ((1−β_i) p_i + β_i/K)` (§3.7;
   uniform where Z = 0, i.e. an all-zero p with β = 0)."""
   mixed = (1.0 - beta) * probs + beta / probs.shape[-1]
   if jnp.ndim(beta) == 0:
-    return mixed   # the scalar path stays exactly rule 4 (Z = 1, no division)
+    return mixed   # the scalar path stays exactly §3.4 (Z = 1, no division)
   return numerics.safe_normalize(mixed)
 
 
