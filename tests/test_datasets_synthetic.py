@@ -111,12 +111,12 @@ def test_bad_arguments():
 
 def test_render_command_writes_a_three_panel_png(tmp_path, capsys):
   out = str(tmp_path / "frame.png")
-  assert cli.main(["render", "--env", "office", "--trajectory", "0", "--frame", "1",
+  assert cli.run(["render", "--env", "office", "--trajectory", "0", "--frame", "1",
                    "--num-frames", "4", "--height", "24", "--width", "32", "--out", out]) == 0
   import cv2  # pylint: disable=g-import-not-at-top
   img = cv2.imread(out)
   assert img.shape == (24, 96, 3)
-  assert cli.main(["list"]) == 0
+  assert cli.run(["list"]) == 0
   assert "house\t2" in capsys.readouterr().out
 
 

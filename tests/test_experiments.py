@@ -1,4 +1,4 @@
-"""The experiment runner end to end on a tiny scene, its cache, and the CLI."""
+"""The demo end to end on a tiny scene, its cache, and the CLI."""
 
 import json
 import os
@@ -11,12 +11,14 @@ import trimesh
 import jaxfusion_models as models
 from jaxfusion.lab import cli
 from jaxfusion import datasets
-from jaxfusion.lab import demo as experiments
+from jaxfusion.lab import config as config_lib
+from jaxfusion.lab import demo
+from jaxfusion.lab import frontend
 
 # The demo test below runs the `demo` command at these sizes (and its default capacity), so that
 # both tests share one set of compiled shapes.
 TINY = dict(envs=("office",), trajectories=(0,), num_frames=2, height=24, width=32,
-            num_samples=2, capacity=experiments.ExperimentConfig.capacity)
+            num_samples=2, capacity=config_lib.RunConfig.capacity)
 
 
 @pytest.fixture(scope="module")
@@ -31,8 +33,8 @@ def checkpoint(tmp_path_factory):
 
 
 def test_runner_end_to_end_and_cache_reuse(tmp_path, checkpoint):
-  config = experiments.ExperimentConfig(**TINY)
-  out = experiments.run_experiment(config, str(tmp_path), checkpoint=checkpoint)
+  config = config_lib.RunConfig(**TINY)
+  out = demo.run_demo(config, str(tmp_path), checkpoint=checkpoint)
   table = out["table"].splitlines()
   for display in ("Sum probs", "Sum labels", "Bayesian", "| R |", "| D |", "D+R"):
     assert any(display in line for line in table), display
@@ -50,7 +52,7 @@ def test_runner_end_to_end_and_cache_reuse(tmp_path, checkpoint):
   caches = os.listdir(tmp_path / "cache")
   assert len(caches) == 1
   mtime = os.path.getmtime(tmp_path / "cache" / caches[0])
-  again = experiments.run_experiment(config, str(tmp_path), checkpoint=checkpoint)
+  again = demo.run_demo(config, str(tmp_path), checkpoint=checkpoint)
   assert os.path.getmtime(tmp_path / "cache" / caches[0]) == mtime   # reused, not recomputed
   assert again["table"] == out["table"]
 
@@ -73,9 +75,10 @@ def test_cli_help_and_tiny_demo(tmp_path, checkpoint, capsys):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["run", "--data", "nowhere:x"], "--data must be"),
+    (["run", "--data", "nowhere:x"], "--data: a sequence is ENV:TRAJECTORY"),
     (["run", "--data", "scannet:/no/such/folder"], "no such folder"),
-    (["run", "--data", "synthetic:office/7"], "ENV/TRAJ"),
+    (["run", "--data", "synthetic:office/7"], "--data: an embedded sequence is ENV:TRAJECTORY"),
+    (["run", "--data", "office:0", "--layout-seeds", "1", "2"], "one --layout-seeds value"),
     (["run", "--data", "synthetic:office/0", "--rule", "kalman"], "unknown rule"),
     (["eval", "--map", "/no/map.npz", "--gt", "/no/gt.npz"], "no map file"),
     (["demo", "--frames", "0"], "--frames must be at least 1"),
@@ -92,4 +95,4 @@ def test_run_refuses_a_checkpoint_with_other_classes(tmp_path):
   path = tmp_path / "three.msgpack"
   models.save(path, params, config=config, class_names=["a", "b", "c"])
   with pytest.raises(models.CheckpointError):
-    experiments.FrontEnd(str(path))
+    frontend.FrontEnd(str(path))

@@ -12,7 +12,7 @@ import pytest
 import jaxfusion as jf
 from jaxfusion import camera as camera_lib
 from jaxfusion.lab import cli
-from jaxfusion.lab import demo as experiments
+from jaxfusion.lab import frontend
 from jaxfusion.lab import stats
 from jaxfusion.lab import study
 
@@ -125,7 +125,7 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   np.put_along_axis(probs, vote[..., None], conf[..., None], -1)
   var = np.where((wrong & (rng.uniform(size=y.shape) < 0.5))[..., None], 0.05, 0.002)
   preds = {"det": probs, "mean": probs, "var": var.astype(np.float32) * np.ones_like(probs)}
-  config = study.StudyConfig(height=H, width=W, capacity=CAPACITY, voxel_size=0.5)
+  config = study.StudyConfig.of(height=H, width=W, capacity=CAPACITY, voxel_size=0.5)
   res = study.analyze_sequence(seq, preds, gt, config)
   head = res["headroom"]
   assert np.all(head > 0), head                            # every category occurs
@@ -133,7 +133,7 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   oracle = res["correct"][study.ORACLE]
   np.testing.assert_array_equal(oracle[:2], head[:2])
   assert oracle[2] == res["correct"]["bayes"][2]
-  for name in config.rules:
+  for name in config.run.rules:
     cm_rule, cm_oracle = res["confusion"][name], res["confusion"][study.ORACLE]
     assert res["correct"][name].sum() == np.trace(cm_rule), name
     assert np.all(res["correct"][name] <= oracle), name
@@ -169,20 +169,20 @@ class _Images:
 
 def test_cache_key_changes_with_the_images(tmp_path):
   front = SimulatedFrontEnd()
-  config = experiments.ExperimentConfig(num_frames=2, height=4, width=5, num_samples=2)
   rgb = np.zeros((2, 4, 5, 3), np.uint8)
   for value in (0, 0, 9):
     seq = _Images(rgb + np.uint8(value))
-    experiments.cached_predictions(front, seq, config, str(tmp_path))
+    frontend.cached_predictions(front, seq, layout_seed=0, shift=1.0, num_samples=2, mc_seed=0,
+                                cache_dir=str(tmp_path))
   assert len(os.listdir(tmp_path)) == 2 and front.calls == 2
 
 
 def test_tiny_study_end_to_end(tmp_path):
   # Layout seed 0, office, trajectory 0, 3 frames at 24×32: the scene of test_experiments.py,
   # so that the renderer's compiled shapes are shared when both run.
-  config = study.StudyConfig(seeds=(0,), shifts=(0.0, 1.0), envs=("office",), trajectories=(0,),
-                             num_frames=3, height=H, width=W, num_samples=3, capacity=CAPACITY,
-                             num_resamples=50)
+  config = study.StudyConfig.of(layout_seeds=(0,), shifts=(0.0, 1.0), envs=("office",),
+                                trajectories=(0,), num_frames=3, height=H, width=W,
+                                num_samples=3, capacity=CAPACITY, num_resamples=50)
   front = SimulatedFrontEnd()
   out = study.run_study(config, str(tmp_path), front_end=front)
   for name in ("study.md", "study.csv", "study.json", "miou_vs_shift.png",
@@ -217,13 +217,13 @@ def test_cli_study_help_and_bad_input(capsys):
   err = capsys.readouterr().err
   assert "shifts must lie in [0, 1]" in err and "Traceback" not in err
   with pytest.raises(ValueError, match="bayes"):
-    study.StudyConfig(rules=("robust_dr",)).validate()
+    study.StudyConfig.of(rules=("robust_dr",)).validate()
 
 
 def test_analyze_sequence_rejects_mismatched_predictions():
   seq, gt, _, _ = _plane_scene(np.random.default_rng(0))
   probs = np.full(seq.depth.shape + (K,), 1.0 / K, np.float32)
-  config = study.StudyConfig(height=H, width=W, capacity=CAPACITY)
+  config = study.StudyConfig.of(height=H, width=W, capacity=CAPACITY)
   with pytest.raises(ValueError, match="missing"):
     study.analyze_sequence(seq, {"det": probs, "mean": probs}, gt, config)
   with pytest.raises(ValueError, match=r"\(T, H, W, K\)"):

@@ -176,7 +176,7 @@ def test_commands_run(data, tmp_path, monkeypatch):
             "gt": {"coords": coords, "labels": labels}, "source": "test scene",
             "capacity": CAPACITY}
 
-  monkeypatch.setattr(tune, "load_calibration_sequence", load)
+  monkeypatch.setattr(tuning, "load_calibration_sequence", load)
   parser = argparse.ArgumentParser()
   sub = parser.add_subparsers()
   tuning.add_sweep_parser(sub)

@@ -8,4 +8,4 @@ import sys
 from jaxfusion.lab import data
 
 if __name__ == "__main__":
-  sys.exit(data.main())
+  sys.exit(data.run())

@@ -114,3 +114,20 @@ def colorize(labels: np.ndarray, colors: np.ndarray) -> np.ndarray:
   out = colors[np.where(valid, labels, 0)]
   out[~valid] = 0
   return out
+
+
+def palette(classes) -> np.ndarray:
+  """`(K, 3) uint8` colours for a map's classes: the project's table for its class lists (the
+  embedded world's, ScanNet's 12), else distinct colours (`io.default_palette`).
+
+  Args:
+    classes: the class names, or just K (a table is then picked by its length).
+  """
+  names = None if isinstance(classes, (int, np.integer)) else tuple(classes)
+  count = int(classes) if names is None else len(names)
+  for table_names, colors in ((CLASS_NAMES, CLASS_COLORS),
+                              (SCANNET_CLASS_NAMES, SCANNET_COLORS)):
+    if (names == tuple(table_names)) if names is not None else count == len(table_names):
+      return np.asarray(colors, np.uint8)
+  from jaxfusion import io  # pylint: disable=import-outside-toplevel  (io imports the engine)
+  return io.default_palette(count)

@@ -1,11 +1,12 @@
-"""Command line for the datasets: `python -m jaxfusion.datasets {list,render,save,show,bench}`.
+"""The embedded world's commands: `jaxfusion list | render | save | show | bench` (also
+`python -m jaxfusion.datasets ...`).
 
 Examples:
-  python -m jaxfusion.datasets list
-  python -m jaxfusion.datasets bench --height 120 --width 160
-  python -m jaxfusion.datasets render --env office --trajectory 0 --frame 0 --out frame.png
-  python -m jaxfusion.datasets save --env house --trajectory 2 --out seqs/house_2
-  python -m jaxfusion.datasets show --path seqs/house_2 --frame 3 --out frame.png
+  jaxfusion list
+  jaxfusion bench --height 120 --width 160
+  jaxfusion render --env office --trajectory 0 --frame 0 --out frame.png
+  jaxfusion save --env house --trajectory 2 --out seqs/house_2
+  jaxfusion show --path seqs/house_2 --frame 3 --out frame.png
 """
 
 import argparse
@@ -15,9 +16,10 @@ import time
 import numpy as np
 
 from jaxfusion.datasets import preview, sensing, synthetic
-from jaxfusion.datasets.classes import CLASS_COLORS, SCANNET_CLASS_NAMES, SCANNET_COLORS
+from jaxfusion.datasets.classes import palette
 from jaxfusion.datasets.sensing import SensingConfig
 from jaxfusion.datasets.sequence import RGBDSequence
+from jaxfusion.lab import flags
 
 
 def _add_synthetic_args(p: argparse.ArgumentParser) -> None:
@@ -27,15 +29,13 @@ def _add_synthetic_args(p: argparse.ArgumentParser) -> None:
   p.add_argument("--num-frames", type=int, default=60)
   p.add_argument("--height", type=int, default=240)
   p.add_argument("--width", type=int, default=320)
-  p.add_argument("--seed", type=int, default=0)
+  flags.add_layout_seeds(p, default=[0], aliases=("--seed",), help_suffix=" (one; default 0)")
   p.add_argument("--shift", type=float, default=1.0)
   p.add_argument("--no-realism", action="store_true", help="exact depth and colour")
   p.add_argument("--no-sensing", action="store_true",
                  help="plain sensor model instead of the view-dependent camera model")
 
 
-def _colors_for(seq: RGBDSequence):
-  return SCANNET_COLORS if tuple(seq.class_names) == SCANNET_CLASS_NAMES else CLASS_COLORS
 
 
 def camera_effects(seq: RGBDSequence, config: SensingConfig) -> dict:
@@ -61,41 +61,60 @@ def camera_effects(seq: RGBDSequence, config: SensingConfig) -> dict:
           "exposure": np.array(states["exposure"])}
 
 
-def main(argv=None) -> int:
-  """Runs the command; returns the exit status."""
-  parser = argparse.ArgumentParser(prog="python -m jaxfusion.datasets",
-                                   description="The embedded synthetic world and its sequences.")
-  sub = parser.add_subparsers(dest="command", required=True)
-  sub.add_parser("list", help="list the embedded sequences (environment, trajectory)")
-  render = sub.add_parser("render", help="render one frame as an RGB | depth | labels PNG")
+def add_parser(subparsers) -> None:
+  """Adds `list`, `render`, `save`, `show` and `bench`."""
+  subparsers.add_parser("list", help="list the embedded sequences (environment, trajectory)"
+                        ).set_defaults(func=main)
+  render = subparsers.add_parser("render", help="render one embedded frame as an RGB | depth | "
+                                                "labels PNG")
   _add_synthetic_args(render)
   render.add_argument("--frame", type=int, default=0)
   render.add_argument("--out", default="frame.png")
-  save = sub.add_parser("save", help="render a whole sequence and save it to a folder")
+  render.set_defaults(func=main)
+  save = subparsers.add_parser("save", help="render a whole embedded sequence and save it to a "
+                                            "folder")
   _add_synthetic_args(save)
   save.add_argument("--out", required=True)
-  show = sub.add_parser("show", help="preview a frame of a saved sequence folder")
+  save.set_defaults(func=main)
+  show = subparsers.add_parser("show", help="preview a frame of a saved sequence folder")
   show.add_argument("--path", required=True)
   show.add_argument("--frame", type=int, default=0)
   show.add_argument("--out", default="frame.png")
-  bench = sub.add_parser("bench", help="time rendering with and without the camera model")
+  show.set_defaults(func=main)
+  bench = subparsers.add_parser("bench", help="time rendering with and without the camera model")
   _add_synthetic_args(bench)
-  args = parser.parse_args(argv)
+  bench.set_defaults(func=main)
 
+
+def run(argv=None) -> int:
+  """`python -m jaxfusion.datasets`: parses `argv` and runs the command."""
+  parser = argparse.ArgumentParser(prog="python -m jaxfusion.datasets",
+                                   description="The embedded synthetic world and its sequences.")
+  add_parser(parser.add_subparsers(dest="command", required=True))
+  args = parser.parse_args(argv)
+  try:
+    return main(args)
+  except ValueError as e:
+    parser.error(str(e))
+
+
+def main(args: argparse.Namespace) -> int:
+  """Runs the parsed command; returns the exit status."""
   if args.command == "list":
     for env, t in synthetic.list_sequences():
       print(f"{env}\t{t}\t{synthetic.trajectories.TRAJECTORY_NAMES[t]}")
     return 0
   if args.command == "show":
     seq = RGBDSequence.load(args.path)
-    preview.render_preview(seq[args.frame], args.out, class_colors=_colors_for(seq))
+    preview.render_preview(seq[args.frame], args.out, class_colors=palette(seq.class_names))
     print(f"wrote {args.out} (frame {args.frame} of {seq!r})")
     return 0
   sensing = SensingConfig.off() if getattr(args, "no_sensing", False) else SensingConfig()
+  seed = flags.one_layout_seed(args)
   if args.command == "bench":
     for name, config in (("sensing off", SensingConfig.off()), ("sensing on", SensingConfig())):
       kwargs = dict(domain=args.domain, num_frames=args.num_frames, height=args.height,
-                    width=args.width, seed=args.seed, shift=args.shift, sensing=config)
+                    width=args.width, seed=seed, shift=args.shift, sensing=config)
       synthetic.make_sequence(args.env, args.trajectory, **kwargs)  # compile
       wall, cpu = time.perf_counter(), time.process_time()
       synthetic.make_sequence(args.env, args.trajectory, **kwargs)
@@ -112,8 +131,8 @@ def main(argv=None) -> int:
     return 0
   if args.command == "render":
     if not 0 <= args.frame < args.num_frames:
-      parser.error(f"--frame must lie in [0, {args.num_frames})")
-    world = synthetic.make_scene(args.env, seed=args.seed, domain=args.domain, shift=args.shift)
+      raise ValueError(f"--frame must lie in [0, {args.num_frames})")
+    world = synthetic.make_scene(args.env, seed=seed, domain=args.domain, shift=args.shift)
     pose = synthetic.trajectories.trajectory(world.layout.room, args.trajectory,
                                              args.num_frames)[args.frame]
     frame = synthetic.render(world, pose, synthetic.default_camera(args.height, args.width),
@@ -125,7 +144,7 @@ def main(argv=None) -> int:
     return 0
   seq = synthetic.make_sequence(args.env, args.trajectory, domain=args.domain,
                                 num_frames=args.num_frames, height=args.height, width=args.width,
-                                seed=args.seed, shift=args.shift, realism=not args.no_realism,
+                                seed=seed, shift=args.shift, realism=not args.no_realism,
                                 sensing=sensing)
   seq.save(args.out)
   print(f"saved {seq!r} to {args.out}")
@@ -133,4 +152,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  sys.exit(run())

@@ -1,150 +1,47 @@
-"""The paper's experiment on the embedded world: for each environment × trajectory, run the
-front end once (MC dropout for the robust rules, dropout off for the baselines), cache its
-outputs, fuse with all six rules, evaluate against GT voxel labels, and aggregate over
-trajectories (confusion matrices are summed, then IoU is computed) — Tables I/II's layout.
+"""`jaxfusion demo`: the paper's experiment on the embedded world.
+
+For each environment × trajectory (one layout seed, one shift), the front end runs once (MC
+dropout for the robust rules, dropout off for the baselines) and is cached, the sequence is
+fused with all six rules, and each map is scored against GT voxel labels; confusion matrices
+are summed over trajectories, then IoU is computed — Tables I/II's layout. It writes the tables
+(Markdown, CSV, JSON), a PLY and an `.npz` of every map, the per-class IoU bars, the Fig. 5-style
+map views and the Fig. 2 outlier example.
 """
 
-import csv
+import argparse
 import dataclasses
-import hashlib
-import io as _io
-import json
 import os
 from typing import Optional, Sequence
 
-import jax
 import numpy as np
 from tqdm.auto import tqdm
 
 import jaxfusion as jf
-from jaxfusion.lab import figures
+from jaxfusion import datasets
 from jaxfusion import io
 from jaxfusion import metrics
-
-# The paper's setting: robust rules read the MC-dropout moments, baselines one dropout-off pass.
-ROBUST_RULES = ("robust_r", "robust_d", "robust_dr")
-CACHE_VERSION = 2
-
-
-@dataclasses.dataclass(frozen=True)
-class ExperimentConfig:
-  """What to run. The defaults are the full experiment; `quick()` is a ~2-minute version."""
-  envs: tuple = ("office", "house")
-  trajectories: tuple = (0, 1, 2)
-  rules: tuple = tuple(jf.rules.PAPER_RULES)
-  num_frames: int = 40
-  height: int = 120
-  width: int = 160
-  num_samples: int = 32
-  domain: str = "test"
-  shift: float = 1.0
-  scene_seed: int = 0
-  seed: int = 0
-  voxel_size: float = 0.1
-  capacity: int = 2**17
-  beta: float = 0.3
-  aggregate: str = "sum"
-
-  @classmethod
-  def quick(cls, **overrides) -> "ExperimentConfig":
-    base = dict(envs=("office",), trajectories=(0,), num_frames=20, height=90, width=120,
-                num_samples=8)
-    base.update(overrides)
-    return cls(**base)
-
-  def make_rule(self, name: str):
-    kwargs = {"aggregate": self.aggregate}
-    if name in ROBUST_RULES:
-      kwargs["beta"] = self.beta
-    return jf.rules.by_name(name, **kwargs)
+from jaxfusion.lab import config as config_lib
+from jaxfusion.lab import figures
+from jaxfusion.lab import flags
+from jaxfusion.lab import frontend
+from jaxfusion.lab import reports
 
 
-def _file_digest(path: str) -> str:
-  h = hashlib.sha256()
-  with open(path, "rb") as f:
-    for chunk in iter(lambda: f.read(1 << 20), b""):
-      h.update(chunk)
-  return h.hexdigest()[:16]
+def fuse_with_rule(sequence, predictions: dict, rule, config: config_lib.RunConfig):
+  """Fuses a whole sequence with one rule (`fuse_sequence`); returns the final MapState.
 
-
-class FrontEnd:
-  """The shipped MC-dropout network as the experiment's observation source."""
-
-  def __init__(self, checkpoint: Optional[str] = None):
-    import jaxfusion_models as models   # application layer: the engine never imports models
-    self._models = models
-    path = checkpoint or models.PRETRAINED_PATH
-    from jaxfusion import datasets
-    self.model = models.load(path, class_names=datasets.CLASS_NAMES)
-    self.model_id = _file_digest(str(path))
-
-  def predict(self, rgb: np.ndarray, *, num_samples: int, key) -> tuple:
-    """`(T, H, W, 3) uint8` → deterministic probs, MC mean, MC var, each `(T, H, W, K)`."""
-    det, mean, var = [], [], []
-    for t in tqdm(range(len(rgb)), desc="front end", leave=False):
-      det.append(np.asarray(self._models.deterministic_probs(
-          self.model.graphdef, self.model.params, rgb[t])))
-      samples = self._models.mc_samples(self.model.graphdef, self.model.params,
-                                        jax.random.fold_in(key, t), rgb[t],
-                                        num_samples=num_samples)
-      m, v = jf.mc_moments(samples)
-      mean.append(np.asarray(m))
-      var.append(np.asarray(v))
-    return np.stack(det), np.stack(mean), np.stack(var)
-
-
-def _cache_path(cache_dir, model_id, seq_id):
-  return os.path.join(cache_dir, f"{seq_id}__model-{model_id}.npz")
-
-
-def cached_predictions(front_end: FrontEnd, sequence, config: ExperimentConfig, cache_dir: str
-                       ) -> dict:
-  """The front end's outputs for a sequence, computed once and cached (write then rename).
-
-  A cache written for another model, sequence or M is never used: the file name carries the
-  model's digest, the layout seed, shift, resolution, frame count, M, the MC seed and a digest
-  of the rendered images (so any change of the sensing settings or of the renderer is a new
-  entry), and the metadata inside is checked.
+  The robust rules read the MC moments (`mean`, `var`), the baselines the dropout-off pass
+  (`det`).
   """
-  rgb_digest = hashlib.sha256(np.ascontiguousarray(sequence.rgb).tobytes()).hexdigest()[:12]
-  seq_id = (f"{sequence.name}_s{config.scene_seed}_{config.height}x{config.width}"
-            f"_T{len(sequence)}_M{config.num_samples}_seed{config.seed}_shift{config.shift}"
-            f"_rgb{rgb_digest}")
-  path = _cache_path(cache_dir, front_end.model_id, seq_id)
-  meta = {"version": CACHE_VERSION, "model": front_end.model_id, "sequence": seq_id}
-  if os.path.exists(path):
-    try:
-      with np.load(path) as data:
-        stored = json.loads(bytes(data["meta"]).decode())
-        if stored == meta:
-          return {k: data[k] for k in ("det", "mean", "var")}
-      tqdm.write(f"cache {path} was made for {stored}; recomputing")
-    except (OSError, ValueError, KeyError):
-      tqdm.write(f"cache {path} is unreadable; recomputing")
-  det, mean, var = front_end.predict(sequence.rgb, num_samples=config.num_samples,
-                                     key=jax.random.PRNGKey(config.seed))
-
-  def write(tmp):
-    with open(tmp, "wb") as f:
-      np.savez(f, det=det, mean=mean, var=var,
-               meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))
-
-  io.atomic_write(path, write)
-  return {"det": det, "mean": mean, "var": var}
-
-
-def fuse_with_rule(sequence, predictions: dict, rule, config: ExperimentConfig):
-  """Fuses a whole sequence with one rule; returns the final MapState."""
   num_classes = predictions["mean"].shape[-1]
   state = jf.init_map(capacity=config.capacity, num_classes=num_classes,
                       voxel_size=config.voxel_size, rule=rule)
-  robust = rule.name in ROBUST_RULES
-  probs = predictions["mean"] if robust else predictions["det"]
-  for t in tqdm(range(len(sequence)), desc=jf.rules.display_name(rule), leave=False):
-    frame = jf.Frame(sequence.depth[t], sequence.T_world_cam[t], probs[t],
-                     predictions["var"][t] if robust else None)
-    state = jf.fuse_frame(state, frame, sequence.camera, rule)
-  return state
+  robust = rule.name in config_lib.ROBUST_RULES
+  frames = jf.Frame(np.asarray(sequence.depth, np.float32),
+                    np.asarray(sequence.T_world_cam, np.float32),
+                    predictions["mean"] if robust else predictions["det"],
+                    predictions["var"] if robust else None)
+  return jf.fuse_sequence(state, frames, sequence.camera, rule)
 
 
 def format_table(results: dict, class_names: Sequence[str]) -> str:
@@ -165,18 +62,27 @@ def _summarize(confusions: dict) -> dict:
           for name, cm in confusions.items()}
 
 
-def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optional[str] = None,
-                   checkpoint: Optional[str] = None) -> dict:
-  """Runs the whole experiment and writes the table (Markdown, CSV, JSON), maps and figures.
+def run_demo(config: config_lib.RunConfig, out_dir: str, *, cache_dir: Optional[str] = None,
+             checkpoint: Optional[str] = None, front_end=None) -> dict:
+  """Runs the demo and writes the tables (Markdown, CSV, JSON), maps and figures.
+
+  Args:
+    config: the run (one layout seed, one shift; validated here).
+    out_dir: output folder.
+    cache_dir: front-end cache folder (default `OUT/cache`).
+    checkpoint: network weights (default: the shipped ones); ignored when `front_end` is given.
+    front_end: any front end (`frontend.FrontEnd` protocol) instead of a checkpoint.
 
   Returns:
     dict with `table` (Markdown), `results` (per scope → per method), `files` (what was
     written), `unmatched` (per sequence: voxels only in the map / only in GT).
   """
-  from jaxfusion import datasets
+  config.validate()
+  if len(config.layout_seeds) != 1 or len(config.shifts) != 1:
+    raise ValueError("the demo runs one layout seed at one shift; `jaxfusion study` runs grids")
   os.makedirs(out_dir, exist_ok=True)
   cache_dir = cache_dir or os.path.join(out_dir, "cache")
-  front_end = FrontEnd(checkpoint)
+  front_end = front_end if front_end is not None else frontend.FrontEnd(checkpoint)
   class_names = list(datasets.CLASS_NAMES)
   colors = np.asarray(datasets.CLASS_COLORS, np.uint8)
   k = len(class_names)
@@ -184,15 +90,17 @@ def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optiona
   display = {name: jf.rules.display_name(rule) for name, rule in rules.items()}
   confusions = {"all": {display[n]: np.zeros((k, k), np.int64) for n in rules}}
   unmatched, files = {}, []
-  runs = [(e, t) for e in config.envs for t in config.trajectories]
-  for env, traj in tqdm(runs, desc="sequences"):
-    seq = datasets.make_sequence(env, traj, domain=config.domain, num_frames=config.num_frames,
-                                 height=config.height, width=config.width,
-                                 seed=config.scene_seed, shift=config.shift)
+  for (seed, env, traj), shift in tqdm(config.grid, desc="sequences"):
+    seq = datasets.load_spec(datasets.SequenceSpec("synthetic", env, traj, config.domain),
+                             num_frames=config.num_frames, height=config.height,
+                             width=config.width, layout_seed=seed, shift=shift)
     gt = datasets.gt_voxel_labels(seq, voxel_size=config.voxel_size, capacity=config.capacity)
-    preds = cached_predictions(front_end, seq, config, cache_dir)
+    preds = frontend.cached_predictions(front_end, seq, layout_seed=seed, shift=shift,
+                                        num_samples=config.num_samples,
+                                        mc_seed=config.mc_seed, cache_dir=cache_dir)
     confusions.setdefault(env, {display[n]: np.zeros((k, k), np.int64) for n in rules})
     views = {"Ground truth": gt}
+    first = traj == config.trajectories[0]
     for name, rule in rules.items():
       state = fuse_with_rule(seq, preds, rule, config)
       voxels = jf.read_map(state)
@@ -207,7 +115,7 @@ def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optiona
                          "config": dataclasses.asdict(config)},
                   poses=seq.T_world_cam, camera=seq.camera, image_size=seq.image_size)
       io.export_ply(stem + ".ply", voxels, voxel_size=config.voxel_size, colors=colors,
-                    mode="cubes" if traj == config.trajectories[0] else "points")
+                    mode="cubes" if first else "points")
       files += [stem + ".npz", stem + ".ply"]
       views[display[name]] = voxels
     gt_npz = os.path.join(out_dir, "maps", f"{seq.name}_gt.npz")   # for `jaxfusion view`
@@ -215,9 +123,9 @@ def run_experiment(config: ExperimentConfig, out_dir: str, *, cache_dir: Optiona
     files.append(gt_npz)
     gt_path = os.path.join(out_dir, "maps", f"{seq.name}_gt.ply")
     io.export_ply(gt_path, gt, voxel_size=config.voxel_size, colors=colors,
-                  mode="cubes" if traj == config.trajectories[0] else "points")
+                  mode="cubes" if first else "points")
     files.append(gt_path)
-    if traj == config.trajectories[0]:
+    if first:
       shown = {t: v for t, v in views.items() if t in ("Ground truth", "Bayesian", "D+R")}
       path = os.path.join(out_dir, f"maps_{seq.name}.png")
       figures.map_views(path, shown, voxel_size=config.voxel_size, colors=colors)
@@ -253,15 +161,11 @@ def _scope_note(scope, config):
 
 def _write_tables(out_dir, results, class_names, table, config, unmatched):
   paths = [os.path.join(out_dir, n) for n in ("results.md", "results.csv", "results.json")]
-  io.atomic_write(paths[0], lambda tmp: open(tmp, "w").write(table + "\n"))
-  buf = _io.StringIO()
-  w = csv.writer(buf)
-  w.writerow(["scope", "method"] + list(class_names) + ["mIoU", "Acc"])
-  for scope, res in results.items():
-    for method, r in res.items():
-      w.writerow([scope, method] + [f"{v:.4f}" for v in r["iou"]] +
-                 [f"{r['miou']:.4f}", f"{r['accuracy']:.4f}"])
-  io.atomic_write(paths[1], lambda tmp: open(tmp, "w").write(buf.getvalue()))
+  reports.write_text(paths[0], table + "\n")
+  reports.write_csv(paths[1], ([scope, method] + [f"{v:.4f}" for v in r["iou"]] +
+                               [f"{r['miou']:.4f}", f"{r['accuracy']:.4f}"]
+                               for scope, res in results.items() for method, r in res.items()),
+                    header=["scope", "method"] + list(class_names) + ["mIoU", "Acc"])
   payload = {
       "config": dataclasses.asdict(config),
       "class_names": list(class_names),
@@ -271,5 +175,54 @@ def _write_tables(out_dir, results, class_names, table, config, unmatched):
                           for m, r in res.items()} for scope, res in results.items()},
       "unmatched": unmatched,
   }
-  io.atomic_write(paths[2], lambda tmp: open(tmp, "w").write(json.dumps(payload, indent=1)))
+  reports.write_json(paths[2], payload)
   return paths
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+  """Adds `jaxfusion demo` and `jaxfusion figure`."""
+  p = subparsers.add_parser("demo", help="the paper's experiment on the embedded world, end to end")
+  p.add_argument("--quick", action="store_true", help="one short sequence (~1 min on 2 cores)")
+  p.add_argument("--out", default="outputs/demo", help="output folder")
+  flags.add_cache(p, default=None)
+  flags.add_checkpoint(p)
+  flags.add_fusion(p, voxels=False)
+  flags.add_grid(p, envs=None, trajectories=None)
+  flags.add_sizes(p, frames=None, height=None, width=None)
+  flags.add_layout_seeds(p, default=[config_lib.RunConfig.layout_seeds[0]],
+                         help_suffix=" (one; default 0)")
+  flags.add_mc_seed(p)
+  p.set_defaults(func=demo_command)
+
+  fig = subparsers.add_parser("figure", help="the paper's Fig. 2 outlier example as a PNG")
+  fig.add_argument("--out", default="outputs/outlier.png")
+  fig.set_defaults(func=figure_command)
+  return p
+
+
+def figure_command(args: argparse.Namespace) -> int:
+  """Runs `jaxfusion figure`: the outlier example (the paper's Fig. 2) as a PNG."""
+  ex = figures.outlier_figure(args.out)
+  print(f"wrote {args.out}: Bayesian posterior after the outlier "
+        f"{np.round(ex['posterior']['Bayesian'], 3)}, D+R {np.round(ex['posterior']['D+R'], 3)}")
+  return 0
+
+
+def main(args: argparse.Namespace) -> int:
+  """Runs the parsed command (`demo` or `figure`)."""
+  return args.func(args)
+
+
+def demo_command(args: argparse.Namespace) -> int:
+  """Runs `jaxfusion demo` from parsed arguments and prints the table."""
+  flags.check_at_least(args)
+  config = config_lib.demo_config(
+      args.quick, beta=args.beta, aggregate=args.aggregate, envs=flags.as_tuple(args.envs),
+      trajectories=flags.as_tuple(args.trajectories), num_frames=args.frames,
+      height=args.height, width=args.width, num_samples=args.num_samples,
+      layout_seeds=(flags.one_layout_seed(args),), mc_seed=args.mc_seed)
+  out = run_demo(config, args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
+  print(out["table"])
+  print(f"\nwrote {len(out['files'])} files under {args.out}/ (results.md/.csv/.json, "
+        "maps/*.ply and *.npz, iou_bars.png, maps_*.png, outlier.png)")
+  return 0

@@ -29,6 +29,7 @@ from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
 from jaxfusion import tune
+from jaxfusion.lab import flags
 from jaxfusion.simulation import REGIONS
 from jaxfusion.simulation import SWEEP_PARAMS
 from jaxfusion.simulation import ErrorModel
@@ -322,19 +323,17 @@ def write_results(out_dir: str, result: dict) -> list:
 # --- command line --------------------------------------------------------------------------------
 def load_sequence(spec: str, *, num_frames: int, height: int, width: int, seed: int,
                   voxel_size: float, shift: float = 1.0) -> dict:
-  """An embedded test-domain sequence ("ENV:TRAJECTORY") as the dict `sweep_grid` reads."""
+  """An embedded sequence ("ENV:TRAJECTORY[:DOMAIN]") as the dict `sweep_grid` reads."""
   from jaxfusion import datasets  # pylint: disable=import-outside-toplevel
-  from jaxfusion.datasets import synthetic  # pylint: disable=import-outside-toplevel
-  env, _, traj = spec.partition(":")
-  if env not in synthetic.ENVIRONMENTS or traj not in ("0", "1", "2"):
-    raise ValueError(f"a sequence is ENV:TRAJECTORY with ENV in {synthetic.ENVIRONMENTS} and "
-                     f"TRAJECTORY 0, 1 or 2; got {spec!r}")
-  seq = datasets.make_sequence(env, int(traj), domain="test", num_frames=num_frames,
-                               height=height, width=width, seed=seed, shift=shift)
+  parsed = datasets.parse_spec(spec)
+  if parsed.kind != "synthetic":
+    raise ValueError(f"simulate-sweep runs on embedded sequences (ENV:TRAJECTORY); got {spec!r}")
+  seq = datasets.load_spec(parsed, num_frames=num_frames, height=height, width=width,
+                           layout_seed=seed, shift=shift)
   gt = datasets.gt_voxel_labels(seq, voxel_size=voxel_size)
-  return {"name": f"{seq.name}_s{seed}", "labels": seq.labels, "instances": seq.instances,
-          "depth": seq.depth, "T_world_cam": seq.T_world_cam, "camera": seq.camera, "gt": gt,
-          "num_classes": seq.num_classes}
+  return {"name": datasets.unit_name(seq.name, seed), "labels": seq.labels,
+          "instances": seq.instances, "depth": seq.depth, "T_world_cam": seq.T_world_cam,
+          "camera": seq.camera, "gt": gt, "num_classes": seq.num_classes}
 
 
 def _floats(text: str) -> list:
@@ -353,7 +352,7 @@ _FULL = {"sequences": "office:0,house:2", "frames": 30, "height": 90, "width": 1
          "x_values": "0,0.25,0.5,0.75,1", "y_values": "0,1,2,3,4"}
 
 
-def add_simulate_sweep_parser(subparsers) -> argparse.ArgumentParser:
+def add_parser(subparsers) -> argparse.ArgumentParser:
   """Adds `simulate-sweep`: D+R − Bayes on a grid of the simulated front end's parameters."""
   parser = subparsers.add_parser(
       "simulate-sweep",
@@ -376,8 +375,9 @@ def add_simulate_sweep_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--height", type=int, default=None)
   parser.add_argument("--width", type=int, default=None)
   parser.add_argument("--draws", type=int, default=None, help="draws of the front end")
-  parser.add_argument("--scene-seed", type=int, default=0, help="layout seed of the world")
-  parser.add_argument("--seed", type=int, default=0, help="seed of the simulated front end")
+  flags.add_layout_seeds(parser, default=[0], aliases=("--scene-seed",),
+                         help_suffix=" (one; default 0)")
+  flags.add_mc_seed(parser, aliases=("--seed",), what="the simulated front end")
   parser.add_argument("--regions", choices=REGIONS, default="both")
   parser.add_argument("--beta", type=float, default=0.3, help="β of R and D+R")
   parser.add_argument("--voxel-size", type=float, default=0.1)
@@ -387,11 +387,11 @@ def add_simulate_sweep_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument(f"--{name.replace('_', '-')}", type=float,
                         default=float(defaults[name]),
                         help=f"fixed value when not on an axis (default {float(defaults[name]):g})")
-  parser.set_defaults(func=simulate_sweep_command)
+  parser.set_defaults(func=main)
   return parser
 
 
-def simulate_sweep_command(args) -> int:
+def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion simulate-sweep`; returns the exit status."""
   preset = _QUICK if args.quick else _FULL
   pick = lambda name: preset[name] if getattr(args, name) is None else getattr(args, name)
@@ -401,17 +401,17 @@ def simulate_sweep_command(args) -> int:
   specs = [s.strip() for s in pick("sequences").split(",") if s.strip()]
   start = time.perf_counter()
   sequences = [load_sequence(s, num_frames=pick("frames"), height=pick("height"),
-                             width=pick("width"), seed=args.scene_seed,
+                             width=pick("width"), seed=flags.one_layout_seed(args),
                              voxel_size=args.voxel_size) for s in specs]
   render_seconds = time.perf_counter() - start
   base = {name: getattr(args, name) for name in SWEEP_PARAMS}
   result = sweep_grid(sequences, x_param=args.x, x_values=_floats(pick("x_values")),
                       y_param=args.y, y_values=_floats(pick("y_values")), base=base,
                       regions=args.regions, beta=args.beta, num_draws=pick("draws"),
-                      seed=args.seed, voxel_size=args.voxel_size)
+                      seed=args.mc_seed, voxel_size=args.voxel_size)
   result["settings"] = {"frames": pick("frames"), "height": pick("height"),
-                        "width": pick("width"), "scene_seed": args.scene_seed,
-                        "seed": args.seed, "voxel_size": args.voxel_size,
+                        "width": pick("width"), "scene_seed": flags.one_layout_seed(args),
+                        "seed": args.mc_seed, "voxel_size": args.voxel_size,
                         "render_seconds": render_seconds, "quick": bool(args.quick)}
   paths = write_results(args.out, result)
   bayes = result["miou"][..., 0].mean(-1)

@@ -4,7 +4,7 @@ Grid: the six rules × domain shifts × layout seeds × environments × trajecto
 (layout seed, environment, trajectory) is rendered at every shift with `make_sequence`'s
 default sensing; the front end runs once per rendered sequence (MC dropout with M samples for
 the robust rules, one dropout-off pass for the baselines, as in `jaxfusion demo`) and is cached
-on disk (`experiments.cached_predictions`, keyed by the model's digest, shift, layout seed,
+on disk (`frontend.cached_predictions`, keyed by the model's digest, shift, layout seed,
 resolution, frames, M and a digest of the rendered images). Then every sequence is fused with
 all rules and with the oracle, and scored against GT voxel labels as the demo does.
 
@@ -48,7 +48,6 @@ import argparse
 import csv
 import dataclasses
 import io as _io
-import json
 import os
 import time
 from typing import Optional
@@ -60,7 +59,10 @@ from tqdm.auto import tqdm
 
 import jaxfusion as jf
 from jaxfusion import camera as camera_lib
-from jaxfusion.lab import demo as experiments
+from jaxfusion.lab import config as config_lib
+from jaxfusion.lab import flags
+from jaxfusion.lab import frontend
+from jaxfusion.lab import reports
 from jaxfusion.lab import figures
 from jaxfusion import io
 from jaxfusion import metrics
@@ -74,100 +76,65 @@ COMPARISONS = (("robust_dr", "bayes"), ("robust_dr", "sum_probs"), ("robust_r", 
                ("robust_d", "bayes"), (ORACLE, "bayes"))
 # α bins: 0.1 nat from 0 to 28 (α ≤ −log 1e-12 ≈ 27.6).
 ALPHA_EDGES = np.linspace(0.0, 28.0, 281)
-# The demo's layout seed (ExperimentConfig.scene_seed); the study's default seeds avoid it.
-DEMO_SEED = experiments.ExperimentConfig.scene_seed
+# The demo's layout seed; the study's default seeds avoid it.
+DEMO_SEED = config_lib.RunConfig.layout_seeds[0]
+
+
+def _study_run(**overrides) -> config_lib.RunConfig:
+  base = dict(layout_seeds=(1, 2, 3), shifts=(0.0, 0.25, 0.5, 0.75, 1.0), num_frames=30,
+              height=96, width=128, num_samples=16)
+  base.update(overrides)
+  return config_lib.RunConfig(**base)
 
 
 @dataclasses.dataclass(frozen=True)
 class StudyConfig:
-  """What the study runs. The defaults are the full study; `quick()` a ≤ 3-minute version.
+  """What the study runs: a grid of runs (`RunConfig`) and the statistics over it.
+
+  The defaults are the full study; `quick()` a ≤ 3-minute version.
 
   Attributes:
-    seeds: layout seeds (the demo uses 0; the study's default seeds are others).
-    shifts: domain shifts in [0, 1].
-    envs: environments.
-    trajectories: trajectory indices.
-    rules: rule names (`jf.rules.PAPER_RULES` keys); must include "bayes" (the oracle's
-      fallback and the reference of the comparisons).
-    num_frames: frames per sequence.
-    height: image rows.
-    width: image columns.
-    num_samples: MC-dropout samples M (≥ 2: the robust rules need a variance).
-    beta: β of the R and D+R rules.
-    aggregate: pixel aggregation of every rule ("sum" or "mean").
-    voxel_size: voxel edge in metres.
-    capacity: map capacity (power of two).
-    seed: MC-dropout seed and bootstrap seed.
+    run: the grid — layout seeds (the demo uses 0; the study's defaults are others), shifts,
+      environments, trajectories, rules (must include "bayes": the oracle's fallback and the
+      reference of the comparisons), sizes, M (≥ 2: the robust rules need a variance), β,
+      aggregation, voxel size, capacity and the MC seed.
     num_resamples: bootstrap resamples B.
     confidence: interval coverage.
+    bootstrap_seed: seed of the bootstrap resamples.
   """
-  seeds: tuple = (1, 2, 3)
-  shifts: tuple = (0.0, 0.25, 0.5, 0.75, 1.0)
-  envs: tuple = ("office", "house")
-  trajectories: tuple = (0, 1, 2)
-  rules: tuple = tuple(jf.rules.PAPER_RULES)
-  num_frames: int = 30
-  height: int = 96
-  width: int = 128
-  num_samples: int = 16
-  beta: float = 0.3
-  aggregate: str = "sum"
-  voxel_size: float = 0.1
-  capacity: int = 2**17
-  seed: int = 0
+  run: config_lib.RunConfig = dataclasses.field(default_factory=_study_run)
   num_resamples: int = stats.DEFAULT_RESAMPLES
   confidence: float = stats.DEFAULT_CONFIDENCE
+  bootstrap_seed: int = 0
 
   @classmethod
   def quick(cls, **overrides) -> "StudyConfig":
     """One seed, both environments, one trajectory, three shifts, short small sequences."""
-    base = dict(seeds=(1,), trajectories=(0,), shifts=(0.0, 0.5, 1.0), num_frames=12,
-                height=60, width=80, num_samples=8)
-    base.update(overrides)
-    return cls(**base)
+    run = dict(layout_seeds=(1,), trajectories=(0,), shifts=(0.0, 0.5, 1.0), num_frames=12,
+               height=60, width=80, num_samples=8)
+    run.update(overrides.pop("run", {}))
+    return cls(run=_study_run(**run), **overrides)
+
+  @classmethod
+  def of(cls, quick: bool = False, *, num_resamples=None, confidence=None, **run) -> "StudyConfig":
+    """The full (or quick) study with some run fields and statistics replaced (None: keep)."""
+    run = {k: v for k, v in run.items() if v is not None}
+    stats_overrides = {k: v for k, v in (("num_resamples", num_resamples),
+                                         ("confidence", confidence)) if v is not None}
+    if quick:
+      return cls.quick(run=run, **stats_overrides)
+    return cls(run=_study_run(**run), **stats_overrides)
 
   def validate(self) -> "StudyConfig":
     """Raises ValueError for an unusable configuration; returns self."""
-    if not self.seeds or any(int(s) != s or s < 0 for s in self.seeds):
-      raise ValueError(f"seeds must be non-negative integers; got {self.seeds}")
-    if len(set(self.seeds)) != len(self.seeds):
-      raise ValueError(f"seeds must be distinct; got {self.seeds}")
-    if not self.shifts or any(not 0.0 <= float(s) <= 1.0 for s in self.shifts):
-      raise ValueError(f"shifts must lie in [0, 1]; got {self.shifts}")
-    if len(set(self.shifts)) != len(self.shifts):
-      raise ValueError(f"shifts must be distinct; got {self.shifts}")
-    if not self.envs or any(e not in ("office", "house") for e in self.envs):
-      raise ValueError(f"envs must be office and/or house; got {self.envs}")
-    if not self.trajectories or any(t not in (0, 1, 2) for t in self.trajectories):
-      raise ValueError(f"trajectories must be among 0, 1, 2; got {self.trajectories}")
-    unknown = [r for r in self.rules if r not in jf.rules.PAPER_RULES]
-    if unknown or "bayes" not in self.rules:
-      raise ValueError(f"rules must be names among {list(jf.rules.PAPER_RULES)} and include "
-                       f"'bayes'; got {self.rules}")
-    for name, low in (("num_frames", 1), ("height", 2), ("width", 2), ("num_samples", 2),
-                      ("num_resamples", 1)):
-      if int(getattr(self, name)) < low:
-        raise ValueError(f"{name} must be at least {low}; got {getattr(self, name)}")
-    if not 0.0 <= self.beta <= 1.0:
-      raise ValueError(f"beta must lie in [0, 1]; got {self.beta}")
-    if self.aggregate not in ("sum", "mean"):
-      raise ValueError(f"aggregate must be 'sum' or 'mean'; got {self.aggregate!r}")
+    self.run.validate(min_samples=2)
+    if "bayes" not in self.run.rules:
+      raise ValueError(f"rules must include 'bayes'; got {self.run.rules}")
+    if int(self.num_resamples) < 1:
+      raise ValueError(f"num_resamples must be at least 1; got {self.num_resamples}")
     if not 0.0 < self.confidence < 1.0:
       raise ValueError(f"confidence must lie in (0, 1); got {self.confidence}")
     return self
-
-  @property
-  def units(self) -> list:
-    """The resampled units: `[(seed, env, trajectory)]`."""
-    return [(s, e, t) for s in self.seeds for e in self.envs for t in self.trajectories]
-
-  def experiment_config(self, scene_seed: int, shift: float) -> experiments.ExperimentConfig:
-    """The demo's configuration for one sequence of the grid (rules, cache key, fusion)."""
-    return experiments.ExperimentConfig(
-        rules=tuple(self.rules), num_frames=self.num_frames, height=self.height,
-        width=self.width, num_samples=self.num_samples, shift=float(shift),
-        scene_seed=int(scene_seed), seed=self.seed, voxel_size=self.voxel_size,
-        capacity=self.capacity, beta=self.beta, aggregate=self.aggregate)
 
 
 # --- per-sequence analysis ---------------------------------------------------------------------
@@ -272,12 +239,11 @@ def alpha_of_prediction(var, pred) -> np.ndarray:
 
 
 def _fuse(depth, T_world_cam, camera, probs, var, rule, config):
-  state = jf.init_map(capacity=config.capacity, num_classes=probs.shape[-1],
-                      voxel_size=config.voxel_size, rule=rule)
-  for t in range(len(depth)):
-    state = jf.fuse_frame(state, jf.Frame(depth[t], T_world_cam[t], probs[t],
-                                          None if var is None else var[t]), camera, rule)
-  return jf.read_map(state)
+  state = jf.init_map(capacity=config.run.capacity, num_classes=probs.shape[-1],
+                      voxel_size=config.run.voxel_size, rule=rule)
+  frames = jf.Frame(np.asarray(depth, np.float32), np.asarray(T_world_cam, np.float32), probs,
+                    None if var is None else var)
+  return jf.read_map(jf.fuse_sequence(state, frames, camera, rule))
 
 
 def _labels_at(voxels, gt_coords) -> np.ndarray:
@@ -293,7 +259,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
 
   Args:
     sequence: an `RGBDSequence` (depth, poses, camera) with `labels`.
-    predictions: `det`, `mean`, `var`, each `(T, H, W, K)` (see `experiments.FrontEnd`).
+    predictions: `det`, `mean`, `var`, each `(T, H, W, K)` (see `frontend.FrontEnd`).
     gt: GT voxel labels (`coords (G, 3)`, `labels (G,)`), e.g. `datasets.gt_voxel_labels`.
     config: the study's configuration.
 
@@ -316,7 +282,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
   gt_coords = np.asarray(gt["coords"])
   gt_labels = np.asarray(gt["labels"], np.int64)
   obs = pixel_observations(sequence.depth, sequence.T_world_cam, sequence.camera,
-                           predictions["mean"], gt_coords, voxel_size=config.voxel_size)
+                           predictions["mean"], gt_coords, voxel_size=config.run.voxel_size)
   observed = obs["gt_index"] >= 0
   right = observed & (obs["pred"] == gt_labels[np.maximum(obs["gt_index"], 0)])
   category = classify_voxels(gt_labels, obs["gt_index"], obs["pred"], num_classes)
@@ -328,9 +294,9 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
 
   confusion, correct, labels_at = {}, {}, {}
   result_bayes = None
-  for name in config.rules:
-    rule = config.experiment_config(0, 0.0).make_rule(name)
-    robust = name in experiments.ROBUST_RULES
+  for name in config.run.rules:
+    rule = config.run.make_rule(name)
+    robust = name in config_lib.ROBUST_RULES
     voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera,
                    predictions["mean"] if robust else predictions["det"],
                    predictions["var"] if robust else None, rule, config)
@@ -340,7 +306,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     if name == "bayes":
       result_bayes = ev
   # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
-  bayes = config.experiment_config(0, 0.0).make_rule("bayes")
+  bayes = config.run.make_rule("bayes")
   masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0).astype(np.float32)
   oracle_voxels = _fuse(masked, sequence.T_world_cam, sequence.camera, predictions["mean"], None,
                         bayes, config)
@@ -392,12 +358,12 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     `accuracy_by_category`), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
     `right_share` interval of right pixel observations), `num_sequences`.
   """
-  units = config.units
-  counts = stats.resample_counts(len(units), config.num_resamples, seed=config.seed)
+  units = config.run.units
+  counts = stats.resample_counts(len(units), config.num_resamples, seed=config.bootstrap_seed)
   kw = dict(counts=counts, confidence=config.confidence)
-  methods = list(config.rules) + [ORACLE]
+  methods = list(config.run.rules) + [ORACLE]
   out = {}
-  for shift in config.shifts:
+  for shift in config.run.shifts:
     rows = {r["unit"]: r for r in per_sequence if r["shift"] == float(shift)}
     missing = [u for u in units if tuple(u) not in rows]
     if missing:
@@ -534,45 +500,30 @@ def _csv(summary: dict) -> str:
   return buf.getvalue()
 
 
-def _jsonable(x):
-  if isinstance(x, dict):
-    return {str(k): _jsonable(v) for k, v in x.items()}
-  if isinstance(x, (list, tuple)):
-    return [_jsonable(v) for v in x]
-  if isinstance(x, np.ndarray):
-    return _jsonable(x.tolist())
-  if isinstance(x, (np.integer,)):
-    return int(x)
-  if isinstance(x, (float, np.floating)):
-    return None if not np.isfinite(x) else float(x)
-  return x
-
-
 def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: StudyConfig, *,
                   model_id: str, timing: dict) -> list:
   """Writes the tables (Markdown, CSV, JSON) and the four PNG figures; returns the paths."""
   os.makedirs(out_dir, exist_ok=True)
-  shifts = np.array([float(s) for s in config.shifts])
-  note = (f"{len(config.units)} sequences per shift ({len(config.seeds)} layout seed(s) × "
-          f"{len(config.envs)} environment(s) × {len(config.trajectories)} trajectory(ies)), "
-          f"{config.num_frames} frames at {config.height}×{config.width}, M = "
-          f"{config.num_samples}, β = {config.beta}, {config.voxel_size} m voxels, pixel "
-          f"aggregation: {config.aggregate}; layout seeds {list(config.seeds)}; "
+  shifts = np.array([float(s) for s in config.run.shifts])
+  note = (f"{len(config.run.units)} sequences per shift ({len(config.run.layout_seeds)} "
+          f"layout seed(s) × "
+          f"{len(config.run.envs)} environment(s) × {len(config.run.trajectories)} trajectory(ies)), "
+          f"{config.run.num_frames} frames at {config.run.height}×{config.run.width}, M = "
+          f"{config.run.num_samples}, β = {config.run.beta}, {config.run.voxel_size} m voxels, pixel "
+          f"aggregation: {config.run.aggregate}; layout seeds {list(config.run.layout_seeds)}; "
           f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
           f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
   table = format_tables(summary, config, note)
   paths = {n: os.path.join(out_dir, n) for n in (
       "study.md", "study.csv", "study.json", "miou_vs_shift.png", "differences_vs_shift.png",
       "headroom.png", "alpha_hist.png")}
-  io.atomic_write(paths["study.md"], lambda tmp: open(tmp, "w").write(table))
-  text = _csv(summary)
-  io.atomic_write(paths["study.csv"], lambda tmp: open(tmp, "w").write(text))
-  payload = _jsonable({
+  reports.write_text(paths["study.md"], table)
+  reports.write_text(paths["study.csv"], _csv(summary))
+  reports.write_json(paths["study.json"], {
       "config": dataclasses.asdict(config), "model": model_id, "timing": timing,
       "headroom_categories": list(HEADROOM), "alpha_edges": ALPHA_EDGES,
       "summary": summary,
-      "sequences": [{k: v for k, v in r.items()} for r in per_sequence]})
-  io.atomic_write(paths["study.json"], lambda tmp: open(tmp, "w").write(json.dumps(payload)))
+      "sequences": [{k: v for k, v in r.items()} for r in per_sequence]}, indent=None)
 
   def curves(section, metric):
     names = summary[next(iter(summary))][section]
@@ -595,7 +546,7 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
   figures.headroom_bars(paths["headroom.png"], shifts, np.nan_to_num(shares), HEADROOM,
                         recovered)
   hist = np.stack([np.sum([r["alpha_hist"] for r in per_sequence if r["shift"] == float(s)],
-                          axis=0) for s in config.shifts])                # (shifts, 2, nb)
+                          axis=0) for s in config.run.shifts])                # (shifts, 2, nb)
   figures.alpha_histograms(paths["alpha_hist.png"], shifts, ALPHA_EDGES, hist[:, 0], hist[:, 1])
   return list(paths.values())
 
@@ -623,20 +574,21 @@ def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = N
   start, start_cpu = time.perf_counter(), time.process_time()
   os.makedirs(out_dir, exist_ok=True)
   cache_dir = cache_dir or os.path.join(out_dir, "cache")
-  front_end = front_end if front_end is not None else experiments.FrontEnd(checkpoint)
+  front_end = front_end if front_end is not None else frontend.FrontEnd(checkpoint)
   timing = {name: 0.0 for name in ("render_s", "front_end_s", "fusion_s", "render_cpu_s",
                                     "front_end_cpu_s", "fusion_cpu_s")}
   per_sequence = []
-  grid = [(u, s) for u in config.units for s in config.shifts]
-  for (seed, env, traj), shift in tqdm(grid, desc="study"):
+  run = config.run
+  for (seed, env, traj), shift in tqdm(run.grid, desc="study"):
     t0, c0 = time.perf_counter(), time.process_time()
-    seq = datasets.make_sequence(env, traj, domain="test", num_frames=config.num_frames,
-                                 height=config.height, width=config.width, seed=seed,
-                                 shift=float(shift))
-    gt = datasets.gt_voxel_labels(seq, voxel_size=config.voxel_size, capacity=config.capacity)
+    seq = datasets.load_spec(datasets.SequenceSpec("synthetic", env, traj, run.domain),
+                             num_frames=run.num_frames, height=run.height, width=run.width,
+                             layout_seed=seed, shift=shift)
+    gt = datasets.gt_voxel_labels(seq, voxel_size=run.voxel_size, capacity=run.capacity)
     t1, c1 = time.perf_counter(), time.process_time()
-    preds = experiments.cached_predictions(front_end, seq, config.experiment_config(seed, shift),
-                                           cache_dir)
+    preds = frontend.cached_predictions(front_end, seq, layout_seed=seed, shift=shift,
+                                        num_samples=run.num_samples, mc_seed=run.mc_seed,
+                                        cache_dir=cache_dir)
     t2, c2 = time.perf_counter(), time.process_time()
     result = analyze_sequence(seq, preds, gt, config)
     t3, c3 = time.perf_counter(), time.process_time()
@@ -660,46 +612,36 @@ def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = N
 
 
 # --- command line ------------------------------------------------------------------------------
-def add_study_parser(sub) -> argparse.ArgumentParser:
-  """Adds the `study` subcommand to an argparse subparsers object."""
-  p = sub.add_parser("study", help="the fusion experiment as a study: rules × shifts × seeds × "
-                                   "sequences, with bootstrap intervals, headroom and oracle")
+def add_parser(subparsers) -> argparse.ArgumentParser:
+  """Adds `jaxfusion study`."""
+  p = subparsers.add_parser(
+      "study", help="the fusion experiment as a study: rules × shifts × seeds × sequences, "
+                    "with bootstrap intervals, headroom and oracle")
   p.add_argument("--quick", action="store_true",
                  help="1 seed × 2 envs × 1 trajectory × 3 shifts, 12 frames at 60×80, M = 8 "
                       "(≤ 3 min on 2 cores)")
   p.add_argument("--out", default="outputs/study", help="output folder")
-  p.add_argument("--cache", default=None, help="front-end cache folder (default OUT/cache)")
-  p.add_argument("--checkpoint", default=None, help="network weights (default: shipped)")
-  p.add_argument("--seeds", nargs="+", type=int, default=None,
-                 help=f"layout seeds (default 1 2 3; the demo uses {DEMO_SEED})")
-  p.add_argument("--shifts", nargs="+", type=float, default=None,
-                 help="domain shifts in [0, 1] (default 0 0.25 0.5 0.75 1)")
-  p.add_argument("--envs", nargs="+", choices=("office", "house"), default=None)
-  p.add_argument("--trajectories", nargs="+", type=int, choices=(0, 1, 2), default=None)
-  p.add_argument("--frames", type=int, default=None, help="frames per sequence")
-  p.add_argument("--height", type=int, default=None)
-  p.add_argument("--width", type=int, default=None)
-  p.add_argument("--num-samples", type=int, default=None, help="MC dropout samples M")
-  p.add_argument("--beta", type=float, default=None, help="β of R and D+R")
-  p.add_argument("--aggregate", choices=("sum", "mean"), default=None)
+  flags.add_cache(p, default=None)
+  flags.add_checkpoint(p)
+  flags.add_layout_seeds(p, default=None, aliases=("--seeds",),
+                         help_suffix=f" (default 1 2 3; the demo uses {DEMO_SEED})")
+  flags.add_grid(p, envs=None, trajectories=None, shifts=True)
+  flags.add_sizes(p, frames=None, height=None, width=None)
+  flags.add_fusion(p, beta=None, aggregate=None, voxels=False)
+  flags.add_mc_seed(p)
   p.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
-  p.set_defaults(func=cmd_study)
+  p.set_defaults(func=main)
   return p
 
 
-def cmd_study(args) -> dict:
+def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion study` from parsed arguments and prints the tables."""
-  overrides = {}
-  for arg, field, cast in (("seeds", "seeds", tuple), ("shifts", "shifts", tuple),
-                           ("envs", "envs", tuple), ("trajectories", "trajectories", tuple),
-                           ("frames", "num_frames", int), ("height", "height", int),
-                           ("width", "width", int), ("num_samples", "num_samples", int),
-                           ("beta", "beta", float), ("aggregate", "aggregate", str),
-                           ("resamples", "num_resamples", int)):
-    value = getattr(args, arg, None)
-    if value is not None:
-      overrides[field] = cast(value)
-  config = StudyConfig.quick(**overrides) if args.quick else StudyConfig(**overrides)
+  config = StudyConfig.of(
+      args.quick, num_resamples=args.resamples, layout_seeds=flags.as_tuple(args.layout_seeds),
+      shifts=flags.as_tuple(args.shifts), envs=flags.as_tuple(args.envs),
+      trajectories=flags.as_tuple(args.trajectories), num_frames=args.frames,
+      height=args.height, width=args.width, num_samples=args.num_samples, beta=args.beta,
+      aggregate=args.aggregate, mc_seed=args.mc_seed)
   out = run_study(config.validate(), args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
   print(out["table"])
   t = out["timing"]
@@ -708,4 +650,4 @@ def cmd_study(args) -> dict:
         f"{t['total_s']:.0f} s (render + GT {t['render_s']:.0f} s, front end "
         f"{t['front_end_s']:.0f} s, fusion and counts {t['fusion_s']:.0f} s; CPU time "
         f"{t['total_cpu_s']:.0f} s)")
-  return out
+  return 0

@@ -14,106 +14,94 @@ import math
 import time
 from typing import Optional, Sequence
 
-import jax
 import numpy as np
 
 from jaxfusion import batch
 from jaxfusion import fusion
 from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
-from jaxfusion import sources
 from jaxfusion import state as state_lib
+from jaxfusion.lab import flags
+from jaxfusion.lab import frontend
 from jaxfusion.lab import stats
 from jaxfusion.tune import DEFAULT_OBJECTIVE
 from jaxfusion.tune import OBJECTIVES
 from jaxfusion.tune import check_objective
 from jaxfusion.tune import evaluate_rules
 from jaxfusion.tune import pad_ground_truth
-from jaxfusion.tune import simulate_predictions
 from jaxfusion.tune import sweep_beta
 from jaxfusion.tune import tune_hparams
 
 
-# --- data: embedded sequences with a simulated network or the shipped one ----------------------
+# --- data: embedded sequences with a simulated network, the shipped one or precomputed files ---
 DEFAULT_CACHE_DIR = "outputs/cache"
 FRONT_ENDS = ("simulated", "shipped")
 
 
-def _parse_spec(spec: str) -> tuple[str, int]:
-  try:
-    env, traj = spec.split(":")
-    return env, int(traj)
-  except ValueError:
-    raise ValueError(f"a sequence is ENV:TRAJECTORY, e.g. office:0; got {spec!r}") from None
-
-
 def load_calibration_sequence(spec: str, *, num_frames: int, height: int, width: int,
-                              voxel_size: float, domain: str = "test", seed: int = 0,
+                              voxel_size: float, seed: int = 0,
                               predictions: Optional[str] = None, num_samples: int = 8,
                               key_seed: int = 0, shift: float = 1.0, front_end=None,
                               cache_dir: Optional[str] = None) -> dict:
-  """A synthetic sequence with GT voxel labels and network outputs, ready to sweep or tune.
+  """An embedded sequence with GT voxel labels and front-end outputs, ready to sweep or tune.
 
   Args:
-    spec: "ENV:TRAJECTORY", e.g. "office:0".
+    spec: an embedded sequence, "ENV:TRAJECTORY[:DOMAIN]", e.g. "office:0"
+      (`datasets.parse_spec`).
     num_frames: T.
     height: H.
     width: W.
     voxel_size: voxel edge in metres for the GT (and the maps).
-    domain: "train" or "test" appearance.
-    seed: layout seed of the synthetic world.
+    seed: layout seed of the embedded world.
     predictions: a folder with one sub-folder per sequence name (e.g. `office_0_test/`) of
-      per-frame `.npz` predictions (`sources.precomputed_source`).
+      per-frame `.npz` predictions (`frontend.precomputed_predictions`).
     num_samples: M (MC-dropout samples of the network, or of the simulated one).
-    key_seed: PRNG seed of the MC samples.
-    shift: the test domain's shift in [0, 1] (`datasets.make_sequence`).
-    front_end: a network front end (`experiments.FrontEnd()`, the shipped weights; or any
-      object with `model_id` and `predict(rgb, *, num_samples, key) -> (det, mean, var)`): its
-      MC mean and variance are computed once per sequence and cached on disk
-      (`experiments.cached_predictions`). None, and no `predictions`: `simulate_predictions`.
-    cache_dir: the front end's cache folder (default `outputs/cache`, the study's layout).
+    key_seed: seed of the MC samples (`--mc-seed`).
+    shift: the test domain's shift in [0, 1].
+    front_end: a network front end (`frontend.FrontEnd()`, or any object of that protocol):
+      its MC mean and variance are computed once per sequence and cached on disk
+      (`frontend.cached_predictions`). None, and no `predictions`: the simulated network
+      (`frontend.simulated_predictions`).
+    cache_dir: the front end's cache folder (default `outputs/cache`).
 
   Returns:
-    dict with `name` (`<sequence>_s<seed>`), `frames` (a Frame with a leading T axis),
-    `camera`, `gt` (dict with `coords`, `labels`), `num_classes`, `capacity` (a power of two ≥
-    4× the GT voxels), `source`.
+    dict with `name` (`datasets.unit_name`), `frames` (a Frame with a leading T axis),
+    `camera`, `gt` (dict with `coords`, `labels`), `num_classes`, `capacity`
+    (`capacity_for` the GT voxels), `source`.
   """
   from jaxfusion import datasets  # pylint: disable=import-outside-toplevel
-  from jaxfusion.datasets import ground_truth  # pylint: disable=import-outside-toplevel
   if front_end is not None and predictions is not None:
     raise ValueError("give either a front end or a predictions folder, not both")
-  env, traj = _parse_spec(spec)
-  seq = datasets.make_sequence(env, traj, domain=domain, num_frames=num_frames, height=height,
-                               width=width, seed=seed, shift=shift)
-  gt = ground_truth.gt_voxel_labels(seq, voxel_size=voxel_size)
+  parsed = datasets.parse_spec(spec)
+  if parsed.kind != "synthetic":
+    raise ValueError(f"the tuning commands run on embedded sequences (ENV:TRAJECTORY); got "
+                     f"{spec!r}")
+  seq = datasets.load_spec(parsed, num_frames=num_frames, height=height, width=width,
+                           layout_seed=seed, shift=shift)
+  gt = datasets.gt_voxel_labels(seq, voxel_size=voxel_size)
   num_classes = seq.num_classes
   if front_end is not None:
-    from jaxfusion.lab import demo as experiments  # pylint: disable=import-outside-toplevel
     cache_dir = cache_dir or DEFAULT_CACHE_DIR
-    config = experiments.ExperimentConfig(
-        num_frames=num_frames, height=height, width=width, num_samples=num_samples,
-        domain=domain, shift=float(shift), scene_seed=int(seed), seed=int(key_seed),
-        voxel_size=voxel_size)
-    preds = experiments.cached_predictions(front_end, seq, config, cache_dir)
-    probs, var = preds["mean"], preds["var"]
+    preds = frontend.cached_predictions(front_end, seq, layout_seed=int(seed), shift=shift,
+                                        num_samples=num_samples, mc_seed=int(key_seed),
+                                        cache_dir=cache_dir)
     source = f"network {front_end.model_id} (MC dropout, M={num_samples}; cache {cache_dir})"
   elif predictions is None:
-    key = jax.random.fold_in(jax.random.PRNGKey(key_seed), 97 * traj + len(env))
-    probs, var = simulate_predictions(key, seq.labels, num_classes=num_classes,
-                                      num_samples=num_samples)
+    preds = frontend.simulated_predictions(seq.labels, env=parsed.env,
+                                           trajectory=parsed.trajectory,
+                                           num_classes=num_classes, num_samples=num_samples,
+                                           mc_seed=key_seed)
     source = f"simulated network (M={num_samples})"
   else:
-    src = sources.precomputed_source(f"{predictions}/{seq.name}")
-    preds = [src.predict(jax.random.PRNGKey(0), seq.rgb[i], index=i) for i in range(len(seq))]
-    probs = np.stack([np.asarray(p.probs) for p in preds])
-    var = (None if preds[0].var is None else np.stack([np.asarray(p.var) for p in preds]))
+    preds = frontend.precomputed_predictions(f"{predictions}/{seq.name}", seq)
     source = f"precomputed predictions in {predictions}/{seq.name}"
-  frames = fusion.Frame(np.asarray(seq.depth, np.float32), np.asarray(seq.T_world_cam,
-                                                                      np.float32),
-                        np.asarray(probs, np.float32),
+  var = preds["var"]
+  frames = fusion.Frame(np.asarray(seq.depth, np.float32),
+                        np.asarray(seq.T_world_cam, np.float32),
+                        np.asarray(preds["mean"], np.float32),
                         None if var is None else np.asarray(var, np.float32))
-  return {"name": f"{seq.name}_s{seed}", "frames": frames, "camera": seq.camera, "gt": gt,
-          "num_classes": num_classes, "source": source,
+  return {"name": datasets.unit_name(seq.name, seed), "frames": frames, "camera": seq.camera,
+          "gt": gt, "num_classes": num_classes, "source": source,
           "capacity": state_lib.capacity_for(len(gt["labels"]))}
 
 
@@ -443,26 +431,28 @@ def _jsonable(x):
 
 # --- command line --------------------------------------------------------------------------------
 def _add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust rule: R, D "
-                   "or D+R") -> None:
-  parser.add_argument("--frames", type=int, default=20, help="frames per sequence")
-  parser.add_argument("--height", type=int, default=60)
-  parser.add_argument("--width", type=int, default=80)
-  parser.add_argument("--voxel-size", type=float, default=0.1)
+                   "or D+R", layout_seeds: bool = True) -> None:
+  flags.add_sizes(parser, frames=20, height=60, width=80, samples=False)
+  parser.add_argument("--voxel-size", type=float, default=0.1, help="voxel edge in metres")
   parser.add_argument("--rule", default="D+R", help=rule_help)
-  parser.add_argument("--aggregate", choices=("sum", "mean"), default="sum")
+  parser.add_argument("--aggregate", choices=("sum", "mean"), default="sum",
+                      help="a voxel's pixels in one frame: summed (the paper) or one mean "
+                           "observation")
   parser.add_argument("--front-end", choices=FRONT_ENDS, default="simulated",
                       help="'shipped': the packaged MC-dropout network, run once per sequence "
-                           "and cached (--cache-dir); 'simulated': simulate_predictions")
+                           "and cached (--cache); 'simulated': simulate_predictions")
   parser.add_argument("--checkpoint", default=None,
                       help="weights for --front-end shipped (default: the packaged ones)")
-  parser.add_argument("--cache-dir", default=DEFAULT_CACHE_DIR,
-                      help="front-end cache folder (shared with `jaxfusion study`'s layout)")
+  flags.add_cache(parser, default=DEFAULT_CACHE_DIR, aliases=("--cache-dir",))
   parser.add_argument("--predictions", default=None,
                       help="folder of precomputed predictions, one sub-folder per sequence "
                            "(instead of a front end)")
   parser.add_argument("--num-samples", type=int, default=8, help="MC samples M")
   parser.add_argument("--shift", type=float, default=1.0, help="test-domain shift in [0, 1]")
-  parser.add_argument("--seed", type=int, default=0, help="layout seed of the synthetic world")
+  if layout_seeds:
+    flags.add_layout_seeds(parser, default=[0], aliases=("--seed",),
+                           help_suffix=" (one; default 0)")
+  flags.add_mc_seed(parser, what="the MC-dropout keys or the simulated network's draws")
   parser.add_argument("--devices", type=int, default=None,
                       help="shard the sweep over this many devices (default: one)")
   parser.add_argument("--json", default=None, help="write the results as JSON here")
@@ -473,15 +463,14 @@ def _front_end(args):
     return None
   if args.predictions is not None:
     raise ValueError("--predictions and --front-end shipped exclude each other")
-  from jaxfusion.lab import demo as experiments  # pylint: disable=import-outside-toplevel
-  return experiments.FrontEnd(args.checkpoint)
+  return frontend.FrontEnd(args.checkpoint)
 
 
 def _data_kwargs(args, front_end=None) -> dict:
   return {"num_frames": args.frames, "height": args.height, "width": args.width,
           "voxel_size": args.voxel_size, "predictions": args.predictions,
           "num_samples": args.num_samples, "shift": args.shift, "front_end": front_end,
-          "cache_dir": args.cache_dir}
+          "cache_dir": args.cache, "key_seed": args.mc_seed}
 
 
 def _mesh(args):
@@ -502,6 +491,19 @@ def _write_json(path: Optional[str], payload: dict) -> None:
   if path:
     _write_text(path, json.dumps(_jsonable(payload), indent=2))
     print(f"wrote {path}")
+
+
+def add_parser(subparsers) -> None:
+  """Adds `sweep`, `tune-beta`, `tune-compare` and `tune-protocol`."""
+  add_sweep_parser(subparsers)
+  add_tune_beta_parser(subparsers)
+  add_tune_compare_parser(subparsers)
+  add_tune_protocol_parser(subparsers)
+
+
+def main(args: argparse.Namespace) -> int:
+  """Runs the parsed tuning command."""
+  return args.func(args)
 
 
 def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
@@ -562,7 +564,7 @@ def _add_protocol_args(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--steps", type=int, default=40)
   parser.add_argument("--learning-rate", type=float, default=0.1)
   parser.add_argument("--out", default="outputs/tune", help="output folder")
-  _add_data_args(parser, rule_help="robust rule with β: R or D+R")
+  _add_data_args(parser, rule_help="robust rule with β: R or D+R", layout_seeds=False)
 
 
 def add_tune_compare_parser(subparsers) -> argparse.ArgumentParser:
@@ -600,7 +602,7 @@ def add_tune_protocol_parser(subparsers) -> argparse.ArgumentParser:
 
 def sweep_command(args) -> int:
   """Runs `jaxfusion sweep`; returns the exit status."""
-  data = load_calibration_sequence(args.sequence, seed=args.seed,
+  data = load_calibration_sequence(args.sequence, seed=flags.one_layout_seed(args),
                                    **_data_kwargs(args, _front_end(args)))
   betas = np.linspace(args.beta_min, args.beta_max, args.num_betas)
   start = time.perf_counter()
@@ -649,7 +651,7 @@ def tune_beta_command(args) -> int:
   """Runs `jaxfusion tune-beta`; returns the exit status."""
   train = tuple(t.strip() for t in args.tune.split(",") if t.strip())
   kwargs = _data_kwargs(args, _front_end(args))
-  cal = load_calibration_sequence(args.calibration, seed=args.seed, **kwargs)
+  cal = load_calibration_sequence(args.calibration, seed=flags.one_layout_seed(args), **kwargs)
   start = time.perf_counter()
   result = tune_hparams(cal["frames"], cal["camera"], cal["gt"]["coords"],
                         cal["gt"]["labels"], rule=args.rule, init={"beta": args.init_beta},
@@ -666,7 +668,7 @@ def tune_beta_command(args) -> int:
   baseline = rules_lib.by_name(args.rule, beta=args.baseline_beta, aggregate=args.aggregate)
   held_out = []
   for spec in [s.strip() for s in args.held_out.split(",") if s.strip()]:
-    data = load_calibration_sequence(spec, seed=args.seed, **kwargs)
+    data = load_calibration_sequence(spec, seed=flags.one_layout_seed(args), **kwargs)
     base_out, tuned_out = evaluate_rules(
         [baseline, result.rule], data["frames"], data["camera"], data["gt"]["coords"],
         data["gt"]["labels"], capacity=data["capacity"], voxel_size=args.voxel_size,

@@ -32,11 +32,11 @@ def add_parser(subparsers) -> None:
                  help="port (default 8080; the next free one if taken)")
   p.add_argument("--max-cubes", type=int, default=sd.DEFAULT_MAX_CUBES,
                  help="draw voxels as cubes up to this many, as points beyond")
-  p.set_defaults(func=run)
+  p.set_defaults(func=main)
 
 
-def run(args) -> None:
-  """Loads the maps and serves them until Ctrl-C.
+def main(args) -> int:
+  """Runs `jaxfusion view`: loads the maps and serves them until Ctrl-C; returns 0.
 
   Raises:
     ValueError: viser is not installed (the message says what to install), bad options, a
@@ -49,8 +49,9 @@ def run(args) -> None:
     raise ValueError(f"--max-cubes must be ≥ 0; got {args.max_cubes}")
   check_host(args.host)
   try:
-    import viser  # noqa: F401  (the optional dependency)
+    import viser  # noqa: F401  pylint: disable=import-outside-toplevel,unused-import
   except ImportError:
     raise ValueError(sd.INSTALL_HINT) from None
   from jaxfusion.lab.viewer import server
   server.serve(args.paths, host=args.host, port=args.port, max_cubes=args.max_cubes)
+  return 0

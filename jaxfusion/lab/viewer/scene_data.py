@@ -243,13 +243,8 @@ def by_sequence(maps: Iterable[ViewMap]) -> dict:
 
 def class_palette(class_names: Sequence[str]) -> np.ndarray:
   """`(K, 3) uint8` class colours: the project's tables for its class lists, else tab20."""
-  from jaxfusion import datasets, io
-  names = tuple(class_names)
-  if names == tuple(datasets.CLASS_NAMES):
-    return np.asarray(datasets.CLASS_COLORS, np.uint8)
-  if names == tuple(datasets.SCANNET_CLASS_NAMES):
-    return np.asarray(datasets.SCANNET_COLORS, np.uint8)
-  return io.default_palette(len(names))
+  from jaxfusion.datasets import classes  # pylint: disable=import-outside-toplevel
+  return classes.palette(class_names)
 
 
 def color_modes(m: ViewMap) -> tuple:

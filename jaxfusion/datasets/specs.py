@@ -1,0 +1,129 @@
+"""One way to name a sequence, and one loader for every kind.
+
+A sequence spec is a short string:
+
+* `office:0` — an embedded sequence, `ENV:TRAJECTORY` (test domain); `office:0:train` for the
+  training domain. ENV is `office` or `house`, TRAJECTORY 0, 1 or 2.
+* `scannet:PATH` — an exported ScanNet scene folder (`load_scannet`).
+* `tum:PATH` — a TUM RGB-D sequence folder (`load_tum`).
+* `saved:PATH` — a folder written by `RGBDSequence.save` (`load_sequence`).
+
+The older spelling `synthetic:ENV/TRAJECTORY[/DOMAIN]` is still read.
+
+An embedded sequence is named `f"{env}_{trajectory}_{domain}"` (`make_sequence`); a sequence
+rendered for one layout seed is the *unit* `f"{name}_s{seed}"` (`unit_name`), the name reports
+and caches use.
+"""
+
+import os
+from typing import NamedTuple, Optional
+
+from jaxfusion.datasets import scannet
+from jaxfusion.datasets import synthetic
+from jaxfusion.datasets import tum
+from jaxfusion.datasets.sequence import RGBDSequence
+
+KINDS = ("synthetic", "scannet", "tum", "saved")
+DOMAINS = ("test", "train")
+
+
+class SequenceSpec(NamedTuple):
+  """A parsed sequence spec.
+
+  Attributes:
+    kind: one of `KINDS`.
+    env: environment of an embedded sequence (None otherwise).
+    trajectory: trajectory index of an embedded sequence (None otherwise).
+    domain: "test" or "train" appearance of an embedded sequence (None otherwise).
+    path: the folder of a ScanNet, TUM or saved sequence (None for an embedded one).
+  """
+  kind: str
+  env: Optional[str] = None
+  trajectory: Optional[int] = None
+  domain: Optional[str] = None
+  path: Optional[str] = None
+
+  def __str__(self) -> str:
+    if self.kind == "synthetic":
+      tail = "" if self.domain == "test" else f":{self.domain}"
+      return f"{self.env}:{self.trajectory}{tail}"
+    return f"{self.kind}:{self.path}"
+
+
+def _embedded(env: str, trajectory: str, domain: str, spec: str) -> SequenceSpec:
+  if (env not in synthetic.ENVIRONMENTS or trajectory not in
+      tuple(str(t) for t in range(synthetic.NUM_TRAJECTORIES)) or domain not in DOMAINS):
+    raise ValueError(
+        f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN] with ENV {'|'.join(synthetic.ENVIRONMENTS)}, "
+        f"TRAJECTORY 0|1|2 and DOMAIN test|train (e.g. office:0); got {spec!r}")
+  return SequenceSpec("synthetic", env=env, trajectory=int(trajectory), domain=domain)
+
+
+def parse_spec(spec: str) -> SequenceSpec:
+  """Parses a sequence spec (see the module docstring); raises ValueError naming the syntax."""
+  if not isinstance(spec, str) or not spec:
+    raise ValueError(f"a sequence spec is a non-empty string such as office:0; got {spec!r}")
+  head, sep, rest = spec.partition(":")
+  if head in ("scannet", "tum", "saved"):
+    if not rest:
+      raise ValueError(f"{head}: needs a folder, e.g. {head}:PATH; got {spec!r}")
+    return SequenceSpec(head, path=rest)
+  if head == "synthetic":            # the older spelling synthetic:ENV/TRAJECTORY[/DOMAIN]
+    parts = rest.split("/")
+    if len(parts) not in (2, 3):
+      raise ValueError(f"synthetic data is synthetic:ENV/TRAJECTORY[/DOMAIN] (or ENV:TRAJECTORY)"
+                       f"; got {spec!r}")
+    return _embedded(parts[0], parts[1], parts[2] if len(parts) == 3 else "test", spec)
+  parts = spec.split(":")
+  if sep and len(parts) in (2, 3) and parts[0] in synthetic.ENVIRONMENTS:
+    return _embedded(parts[0], parts[1], parts[2] if len(parts) == 3 else "test", spec)
+  raise ValueError(f"a sequence is ENV:TRAJECTORY[:DOMAIN] (e.g. office:0), scannet:PATH, "
+                   f"tum:PATH or saved:PATH; got {spec!r}")
+
+
+def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, width: int = 160,
+              layout_seed: int = 0, shift: float = 1.0, stride: int = 1,
+              skip_bad: bool = True, **render) -> RGBDSequence:
+  """Loads the sequence a spec names.
+
+  Args:
+    spec: a spec string or a `SequenceSpec`.
+    num_frames: frames of an embedded sequence (default 60); the most frames read from a folder
+      (default all).
+    height: image rows of an embedded sequence (folders keep their size).
+    width: image columns of an embedded sequence.
+    layout_seed: layout seed of the embedded world.
+    shift: test-domain shift in [0, 1] of an embedded sequence.
+    stride: keep every stride-th frame of a folder.
+    skip_bad: skip (and count, with one warning) unreadable frames of a folder.
+    **render: passed to `make_sequence` (`realism`, `sensing`).
+
+  Returns:
+    The `RGBDSequence`.
+
+  Raises:
+    ValueError: a bad spec, or a folder with no readable frame.
+    FileNotFoundError: a folder that does not exist.
+  """
+  spec = parse_spec(spec) if isinstance(spec, str) else spec
+  if spec.kind == "synthetic":
+    return synthetic.make_sequence(spec.env, spec.trajectory, domain=spec.domain,
+                                   num_frames=60 if num_frames is None else num_frames,
+                                   height=height, width=width, seed=layout_seed, shift=shift,
+                                   **render)
+  if not os.path.isdir(spec.path):
+    raise FileNotFoundError(f"{spec.kind}: no such folder {spec.path!r}")
+  if spec.kind == "saved":
+    seq = RGBDSequence.load(spec.path)
+    keep = list(range(0, len(seq), max(int(stride), 1)))[:num_frames]
+    return seq if len(keep) == len(seq) else seq.subset(keep)
+  loader = scannet.load_scannet if spec.kind == "scannet" else tum.load_tum
+  seq = loader(spec.path, stride=stride, max_frames=num_frames, skip_bad=skip_bad)
+  if len(seq) == 0:
+    raise ValueError(f"{spec}: no readable frames")
+  return seq
+
+
+def unit_name(sequence_name: str, layout_seed: int) -> str:
+  """The name of a sequence rendered for one layout seed, e.g. `office_0_test_s1`."""
+  return f"{sequence_name}_s{int(layout_seed)}"

@@ -1,0 +1,110 @@
+"""Flag groups the commands share: one spelling and one meaning for each.
+
+- `--layout-seeds S [S ...]`: layout seeds of the embedded world (which room, which furniture,
+  which path). Older spellings, still accepted where a command had them: `--seeds` (study),
+  `--scene-seed` (simulate-sweep), `--seed` (sweep, tune-beta, tune-compare, tune-protocol and
+  the datasets commands, where it meant the layout).
+- `--mc-seed N`: seed of the front end's randomness (MC-dropout keys, the simulated network's
+  draws). Older spelling: `--seed` (run, simulate-sweep, where it meant that).
+- `--cache DIR`: the front-end cache folder (`frontend.cached_predictions`). Older spelling:
+  `--cache-dir` (the tuning commands).
+- `--frames`, `--height`, `--width`, `--num-samples`, `--checkpoint`, `--beta`,
+  `--aggregate`, `--voxel-size`, `--envs`, `--trajectories`, `--shifts`: what they say, the
+  same in every command.
+"""
+
+import argparse
+from typing import Optional, Sequence
+
+from jaxfusion.datasets import synthetic
+
+
+def add_layout_seeds(parser: argparse.ArgumentParser, *, default: Optional[Sequence[int]],
+                     aliases: Sequence[str] = (), help_suffix: str = "") -> None:
+  """`--layout-seeds` (dest `layout_seeds`, a list of ints)."""
+  parser.add_argument("--layout-seeds", *aliases, dest="layout_seeds", nargs="+", type=int,
+                      default=None if default is None else list(default), metavar="SEED",
+                      help="layout seeds of the embedded world" + help_suffix)
+
+
+def one_layout_seed(args: argparse.Namespace) -> int:
+  """The single layout seed of a command that renders one layout."""
+  seeds = args.layout_seeds
+  if len(seeds) != 1:
+    raise ValueError(f"this command renders one layout: give one --layout-seeds value; got "
+                     f"{seeds}")
+  return int(seeds[0])
+
+
+def add_mc_seed(parser: argparse.ArgumentParser, *, default: int = 0,
+                aliases: Sequence[str] = (), what: str = "the MC-dropout keys") -> None:
+  """`--mc-seed` (dest `mc_seed`)."""
+  parser.add_argument("--mc-seed", *aliases, dest="mc_seed", type=int, default=default,
+                      help=f"seed of {what} (default {default})")
+
+
+def add_cache(parser: argparse.ArgumentParser, *, default: Optional[str],
+              aliases: Sequence[str] = ()) -> None:
+  """`--cache` (dest `cache`): the front-end cache folder."""
+  where = "OUT/cache" if default is None else default
+  parser.add_argument("--cache", *aliases, dest="cache", default=default, metavar="DIR",
+                      help=f"front-end cache folder (default {where}; shareable between "
+                           "demo, study and the tuning commands)")
+
+
+def add_sizes(parser: argparse.ArgumentParser, *, frames: Optional[int],
+              height: Optional[int], width: Optional[int],
+              num_samples: Optional[int] = None, samples: bool = True) -> None:
+  """`--frames`, `--height`, `--width` and (with `samples`) `--num-samples`."""
+  parser.add_argument("--frames", type=int, default=frames, help="frames per sequence")
+  parser.add_argument("--height", type=int, default=height, help="image rows")
+  parser.add_argument("--width", type=int, default=width, help="image columns")
+  if samples:
+    parser.add_argument("--num-samples", type=int, default=num_samples,
+                        help="MC-dropout samples M")
+
+
+def check_at_least(args: argparse.Namespace, low: int = 1,
+                   names: Sequence[str] = ("frames", "height", "width", "num_samples")) -> None:
+  """Raises ValueError naming the flag when a given size is below `low`."""
+  for name in names:
+    value = getattr(args, name, None)
+    if value is not None and value < low:
+      raise ValueError(f"--{name.replace('_', '-')} must be at least {low}")
+
+
+def add_checkpoint(parser: argparse.ArgumentParser) -> None:
+  """`--checkpoint`: network weights (default: the shipped ones)."""
+  parser.add_argument("--checkpoint", default=None,
+                      help="network weights (default: the shipped ones)")
+
+
+def add_fusion(parser: argparse.ArgumentParser, *, beta: Optional[float] = 0.3,
+               aggregate: Optional[str] = "sum", voxel_size: Optional[float] = 0.1,
+               voxels: bool = True) -> None:
+  """`--beta`, `--aggregate` and (with `voxels`) `--voxel-size`."""
+  parser.add_argument("--beta", type=float, default=beta, help="β of R and D+R")
+  parser.add_argument("--aggregate", choices=("sum", "mean"), default=aggregate,
+                      help="a voxel's pixels in one frame: summed (the paper) or one mean "
+                           "observation")
+  if voxels:
+    parser.add_argument("--voxel-size", type=float, default=voxel_size,
+                        help="voxel edge in metres")
+
+
+def add_grid(parser: argparse.ArgumentParser, *, envs: Optional[Sequence[str]],
+             trajectories: Optional[Sequence[int]], shifts: bool = False) -> None:
+  """`--envs`, `--trajectories` and (with `shifts`) `--shifts`."""
+  parser.add_argument("--envs", nargs="+", choices=synthetic.ENVIRONMENTS,
+                      default=None if envs is None else list(envs))
+  parser.add_argument("--trajectories", nargs="+", type=int,
+                      choices=range(synthetic.NUM_TRAJECTORIES),
+                      default=None if trajectories is None else list(trajectories))
+  if shifts:
+    parser.add_argument("--shifts", nargs="+", type=float, default=None,
+                        help="test-domain shifts in [0, 1]")
+
+
+def as_tuple(value):
+  """A list from argparse as a tuple (None stays None)."""
+  return None if value is None else tuple(value)

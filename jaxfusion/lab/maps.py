@@ -1,0 +1,187 @@
+"""Commands on one map: `jaxfusion run` (fuse a sequence of your data with one rule), `eval`
+(score a saved map against GT voxel labels) and `export` (a saved map as a PLY).
+"""
+
+import argparse
+import os
+
+import numpy as np
+from tqdm.auto import tqdm
+
+import jaxfusion as jf
+from jaxfusion import datasets
+from jaxfusion import io
+from jaxfusion import metrics
+from jaxfusion.lab import flags
+from jaxfusion.lab import frontend
+
+# Frames fused per `fuse_sequence` call by `run`: the network's outputs are streamed, so a long
+# real sequence never has to fit in memory, and each chunk is one compiled scan.
+RUN_CHUNK = 16
+
+
+def _predictions(seq, args):
+  """Per-frame `(probs, var)` from precomputed files or a network (var None with M = 1)."""
+  import jax  # pylint: disable=import-outside-toplevel
+  if args.predictions:
+    source = jf.sources.precomputed_source(args.predictions)
+    if len(source) != len(seq):
+      raise ValueError(f"--predictions has {len(source)} frames but the data has {len(seq)}")
+    for t in range(len(seq)):
+      pred = source.predict(None, None, index=t)
+      yield np.asarray(pred.probs), None if pred.var is None else np.asarray(pred.var)
+    return
+  net = frontend.FrontEnd(args.checkpoint, class_names=None)
+  if len(net.class_names) != len(seq.class_names) and seq.labels is not None:
+    tqdm.write(f"note: the network has {len(net.class_names)} classes and the data "
+               f"{len(seq.class_names)}; the map will not be scored")
+  key = jax.random.PRNGKey(args.mc_seed)
+  for t in range(len(seq)):
+    if args.num_samples > 1:
+      yield net.mc(seq.rgb[t], num_samples=args.num_samples, key=jax.random.fold_in(key, t))
+    else:
+      yield net.deterministic(seq.rgb[t]), None
+
+
+def _chunks(seq, predictions, size):
+  """Stacks of up to `size` frames: `(t0, Frame with a leading time axis)`."""
+  buf = []
+  for t, (probs, var) in enumerate(predictions):
+    buf.append((t, probs, var))
+    if len(buf) == size or t == len(seq) - 1:
+      idx = [b[0] for b in buf]
+      var_stack = None if buf[0][2] is None else np.stack([b[2] for b in buf])
+      yield len(buf), jf.Frame(np.asarray(seq.depth[idx], np.float32),
+                               np.asarray(seq.T_world_cam[idx], np.float32),
+                               np.stack([b[1] for b in buf]), var_stack)
+      buf = []
+
+
+def _rule(args):
+  kwargs = {"aggregate": args.aggregate}
+  if args.rule.lower() in ("robust_r", "robust_d", "robust_dr", "r", "d", "d+r"):
+    kwargs["beta"] = args.beta
+  return jf.rules.by_name(args.rule, **kwargs)
+
+
+def run_command(args: argparse.Namespace) -> int:
+  """Runs `jaxfusion run`: fuses one sequence with one rule, saves and scores the map."""
+  rule = _rule(args)
+  if rule.requires_var and args.num_samples < 2 and not args.predictions:
+    raise ValueError(f"rule {args.rule} needs epistemic variance: use --num-samples ≥ 2")
+  try:
+    spec = datasets.parse_spec(args.data)
+  except ValueError as e:
+    raise ValueError(f"--data: {e}") from None
+  seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height, width=args.width,
+                           layout_seed=flags.one_layout_seed(args), stride=args.stride)
+  state, num_classes = None, None
+  with tqdm(total=len(seq), desc="fusing") as bar:
+    for count, frames in _chunks(seq, _predictions(seq, args), RUN_CHUNK):
+      if state is None:
+        num_classes = frames.probs.shape[-1]
+        state = jf.init_map(capacity=args.capacity, num_classes=num_classes,
+                            voxel_size=args.voxel_size, rule=rule)
+      state = jf.fuse_sequence(state, frames, seq.camera, rule)
+      bar.update(count)
+  voxels = jf.read_map(state)
+  os.makedirs(args.out, exist_ok=True)
+  stem = os.path.join(args.out, f"{seq.name}_{rule.name}")
+  names = seq.class_names if len(seq.class_names) == num_classes else None
+  io.save_map(stem + ".npz", state, rule, class_names=names,
+              extra={"data": args.data, "sequence": seq.name}, poses=seq.T_world_cam,
+              camera=seq.camera, image_size=seq.image_size)
+  io.export_ply(stem + ".ply", voxels, voxel_size=args.voxel_size,
+                colors=datasets.palette(num_classes if names is None else names))
+  print(f"map: {len(voxels['coords'])} voxels → {stem}.npz, {stem}.ply")
+  if seq.labels is not None and names is not None:
+    gt = datasets.gt_voxel_labels(seq, voxel_size=args.voxel_size, capacity=args.capacity)
+    gt_path = stem + "_gt.npz"
+
+    def write(tmp):
+      with open(tmp, "wb") as f:
+        np.savez(f, **gt)
+
+    io.atomic_write(gt_path, write)
+    ev = metrics.evaluate_map(voxels, gt, num_classes, ignore_label=datasets.IGNORE_LABEL)
+    print(score_line(ev, names))
+    print(f"GT voxel labels → {gt_path}")
+  return 0
+
+
+def score_line(ev: dict, names) -> str:
+  """Two lines: map mIoU, accuracy and the voxel counts of `metrics.evaluate_map`, then the
+  per-class IoU."""
+  ious = ", ".join(f"{n} {100 * v:.1f}" for n, v in zip(names, ev["iou"]) if not np.isnan(v))
+  return (f"mIoU {100 * ev['miou']:.1f}  Acc {100 * ev['accuracy']:.1f}  ({ev['matched']} "
+          f"voxels scored, {ev['map_only']} only in the map, {ev['gt_only']} only in GT)\n"
+          f"IoU: {ious}")
+
+
+def eval_command(args: argparse.Namespace) -> int:
+  """Runs `jaxfusion eval`: scores a saved map against GT voxel labels."""
+  state, rule, meta = io.load_map(args.map)
+  if not os.path.exists(args.gt):
+    raise FileNotFoundError(f"--gt: no such file {args.gt!r}")
+  with np.load(args.gt) as f:
+    if "coords" not in f or "labels" not in f:
+      raise ValueError(f"{args.gt} must hold 'coords' and 'labels' (as written by "
+                       "`jaxfusion run`)")
+    gt = {"coords": f["coords"], "labels": f["labels"]}
+  ev = metrics.evaluate_map(jf.read_map(state), gt, state.num_classes,
+                            ignore_label=datasets.IGNORE_LABEL)
+  names = meta["class_names"] or [str(i) for i in range(state.num_classes)]
+  print(f"{jf.rules.display_name(rule)}: " + score_line(ev, names))
+  return 0
+
+
+def export_command(args: argparse.Namespace) -> int:
+  """Runs `jaxfusion export`: writes a saved map as a class-coloured PLY."""
+  state, _, meta = io.load_map(args.map)
+  voxels = jf.read_map(state)
+  io.export_ply(args.out, voxels, voxel_size=float(state.voxel_size),
+                colors=datasets.palette(meta["class_names"] or state.num_classes),
+                mode=args.mode)
+  print(f"{len(voxels['coords'])} voxels → {args.out}")
+  return 0
+
+
+def add_parser(subparsers) -> None:
+  """Adds `run`, `eval` and `export`."""
+  run = subparsers.add_parser("run", help="fuse one sequence of your data with one rule")
+  run.add_argument("--data", required=True,
+                   help="the sequence: ENV:TRAJECTORY (e.g. office:0), scannet:PATH, tum:PATH "
+                        "or saved:PATH (also synthetic:ENV/TRAJECTORY)")
+  run.add_argument("--rule", default="robust_dr", help="sum_probs, sum_labels, bayes, R, D, D+R")
+  flags.add_fusion(run)
+  run.add_argument("--predictions", default=None,
+                   help="folder of precomputed .npz predictions (one per frame) instead of the "
+                        "shipped network")
+  flags.add_checkpoint(run)
+  run.add_argument("--num-samples", type=int, default=32, help="MC dropout samples (1 = off)")
+  run.add_argument("--frames", type=int, default=40,
+                   help="frames of an embedded sequence / the most frames read from a folder")
+  run.add_argument("--stride", type=int, default=1, help="keep every N-th frame (folders)")
+  run.add_argument("--height", type=int, default=120, help="image rows (embedded sequences)")
+  run.add_argument("--width", type=int, default=160, help="image columns (embedded sequences)")
+  run.add_argument("--capacity", type=int, default=2**18)
+  flags.add_layout_seeds(run, default=[0], help_suffix=" (one; default 0)")
+  flags.add_mc_seed(run, aliases=("--seed",))
+  run.add_argument("--out", default="outputs/run")
+  run.set_defaults(func=run_command)
+
+  ev = subparsers.add_parser("eval", help="score a saved map against GT voxel labels")
+  ev.add_argument("--map", required=True, help="map .npz from `jaxfusion run` / `demo`")
+  ev.add_argument("--gt", required=True, help="GT voxel labels .npz (coords, labels)")
+  ev.set_defaults(func=eval_command)
+
+  ex = subparsers.add_parser("export", help="export a saved map as a class-coloured PLY")
+  ex.add_argument("--map", required=True)
+  ex.add_argument("--out", required=True)
+  ex.add_argument("--mode", choices=("cubes", "points"), default="cubes")
+  ex.set_defaults(func=export_command)
+
+
+def main(args: argparse.Namespace) -> int:
+  """Runs the parsed command (`run`, `eval` or `export`)."""
+  return args.func(args)
