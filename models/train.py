@@ -8,10 +8,17 @@ augmentation. After training it evaluates on a held-out split of the training do
 the shifted test domain (pixel accuracy, mIoU, AUROC of the epistemic variance as an error
 detector) and writes the checkpoint with a JSON record of how it was made.
 
+Everything a run depends on is one frozen `Config` (data and evaluation settings, the
+optimisation `TrainConfig` and the architecture `net.SegNetConfig`), written once: the command
+line flags, `--recipe` (replaying a run from its JSON record) and the record itself are all
+derived from its fields. `python -m models.train --help` lists them;
+`train_and_evaluate(config, out)` is the importable entry point.
+
 Shape legend: N training images, B batch, H×W pixels, K classes.
 """
 
 import argparse
+import dataclasses
 import functools
 import hashlib
 import json
@@ -20,6 +27,7 @@ import platform
 import subprocess
 import sys
 import time
+import typing
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -35,25 +43,126 @@ from . import checkpoint, evaluate, net
 NUM_TRAIN = 1600  # Training views rendered by default.
 
 
-class TrainConfig(NamedTuple):
-  """Optimisation hyperparameters (the architecture lives in `net.SegNetConfig`)."""
+def option(default: Any, *, help: str, flag: str | None = None, record: str | None = None,
+           absent: Any = dataclasses.MISSING, choices: tuple[str, ...] | None = None) -> Any:
+  """A config field together with what the command line and the training record need of it.
 
-  steps: int = 3000
-  batch_size: int = 12
-  learning_rate: float = 3e-3
-  warmup_steps: int = 60
-  weight_decay: float = 1e-4
-  clip_norm: float = 1.0
-  class_weight_power: float = 0.5
-  class_weight_max: float = 8.0
-  color_strength: float = 1.0
-  blur_prob: float = 0.0
-  blur_max_sigma: float = 1.5
-  noise_min: float = 0.02
-  noise_max: float = 0.02
-  zoom_max: float = 1.0
-  region_color_prob: float = 0.0
-  texture_prob: float = 0.0
+  Args:
+    default: the value when neither a flag nor a recipe sets it.
+    help: one line for `--help` (the default is appended there).
+    flag: its command-line spelling, when that is not `--field-name` (old spellings stay).
+    record: where a record keeps it, as a dotted path into the recipe document
+      (`{"config": ..., "record": ...}`); default: `<its section's path>.<field name>`.
+    absent: what a record without the field means (the setting of the code from before the
+      field existed), or a function of the record's section returning it; without one, a recipe
+      must carry the field.
+    choices: the allowed values of a `str` field.
+
+  Returns:
+    A `dataclasses.field` carrying these in its metadata.
+  """
+  return dataclasses.field(default=default, metadata=dict(
+      help=help, flag=flag, record=record, absent=absent, choices=choices))
+
+
+def section(cls: type, *, record: str, flags: dict[str, str] | None = None,
+            hidden: tuple[str, ...] = ()) -> Any:
+  """A nested config dataclass, its fields exposed as flags of their own names.
+
+  A class with `to_dict` / `from_dict` (`net.SegNetConfig`) is stored whole by those; one built
+  from `option`s is stored field by field.
+
+  Args:
+    cls: the nested dataclass; its default instance is the default.
+    record: dotted path of its object in the recipe document.
+    flags: `{field name: flag}` spellings for fields of a class that has no `option`s.
+    hidden: fields with no flag (set by the run itself, such as the number of classes).
+
+  Returns:
+    A `dataclasses.field`.
+  """
+  return dataclasses.field(default_factory=cls, metadata=dict(
+      record=record, flags=flags or {}, hidden=hidden))
+
+
+def _documented(cls: type) -> type:
+  """Appends an `Attributes:` section built from the fields' `help` to the class docstring."""
+  lines = [f"    {f.name}: {f.metadata['help']}" for f in dataclasses.fields(cls)
+           if "help" in f.metadata]
+  cls.__doc__ = (cls.__doc__ or "").rstrip() + "\n\n  Attributes:\n" + "\n".join(lines) + "\n"
+  return cls
+
+
+def _noise_min_absent(train_config: dict[str, Any]) -> float:
+  """A record with `noise_max` but no `noise_min` drew the noise level from [0, noise_max]."""
+  return 0.0 if "noise_max" in train_config else 0.02
+
+
+@_documented
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """Optimisation and augmentation hyperparameters (the architecture is `net.SegNetConfig`).
+
+  A record lacking one of the later augmentation fields means that augmentation was off.
+  """
+
+  steps: int = option(3000, help="optimisation steps (--quick: 40)")
+  batch_size: int = option(12, help="images per step")
+  learning_rate: float = option(3e-3, flag="--lr",
+                                help="peak of the warm-up + cosine learning-rate schedule")
+  warmup_steps: int = option(60, flag="--warmup", help="steps of linear learning-rate warm-up")
+  weight_decay: float = option(1e-4, help="AdamW weight decay")
+  clip_norm: float = option(1.0, absent=1.0, help="global gradient-norm clip")
+  class_weight_power: float = option(
+      0.5, absent=0.5, help="exponent of the inverse-frequency class weights (0: unweighted)")
+  class_weight_max: float = option(8.0, absent=8.0, help="clip bound of the class weights")
+  color_strength: float = option(
+      1.0, help="scale of the colour augmentation (0 = geometry and noise only)")
+  blur_prob: float = option(0.0, absent=0.0, help="probability of a Gaussian blur per image")
+  blur_max_sigma: float = option(1.5, absent=1.5,
+                                 help="largest blur standard deviation in pixels")
+  noise_min: float = option(0.02, absent=_noise_min_absent,
+                            help="smallest sensor-noise standard deviation (drawn per image)")
+  noise_max: float = option(0.02, absent=0.02, help="largest sensor-noise standard deviation")
+  zoom_max: float = option(1.0, absent=1.0, help="largest zoom-in factor (1 = no zoom)")
+  region_color_prob: float = option(
+      0.0, absent=0.0, help="probability per image of recolouring each class region on its own")
+  texture_prob: float = option(
+      0.0, absent=0.0, help="probability per region of a random stripe/check/wave pattern")
+
+
+@_documented
+@dataclasses.dataclass(frozen=True)
+class Config:
+  """Everything a training run depends on: its record replays it (`--recipe`).
+
+  `model.num_classes` is set from the embedded world's class list when the run starts.
+  """
+
+  seed: int = option(0, record="record.seed",
+                     help="seed of the data, initialisation, batching, augmentation, dropout")
+  height: int = option(96, record="record.data.height", help="image height H in pixels")
+  width: int = option(128, record="record.data.width", help="image width W in pixels")
+  num_train: int = option(NUM_TRAIN, record="record.data.train.num_images",
+                          help="training views rendered (--quick: 64)")
+  num_eval: int = option(48, record="record.data.test.num_images",
+                         help="images per evaluation split (--quick: 16)")
+  shift: float = option(1.0, record="record.data.test.shift", help="test-domain shift strength")
+  sensing: str = option(
+      "off", choices=("on", "off"), record="record.data.sensing", absent="off",
+      help="render the views with the embedded world's view-dependent camera model "
+           "(sample_views' default since datasets ecb82f6) or without it (the renderer the "
+           "shipped weights were trained with)")
+  eval_samples: int = option(16, record="record.eval_num_samples", absent=16,
+                             help="M for the MC evaluation")
+  train: TrainConfig = section(TrainConfig, record="record.train_config")
+  model: net.SegNetConfig = section(net.SegNetConfig, record="config",
+                                    flags={"dropout_rate": "--dropout"},
+                                    hidden=("num_classes",))
+
+
+# What `--quick` changes: a tiny run (minutes) for smoke tests.
+QUICK = {"steps": 40, "num_train": 64, "num_eval": 16}
 
 
 def class_weights(labels: np.ndarray, num_classes: int, *, power: float = 0.5,
@@ -516,164 +625,415 @@ def dataset_version() -> str:
   return (commit or "uncommitted") + ("-dirty" if dirty else "")
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-  p = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n")[0])
-  p.add_argument("--out", default="outputs/segnet.msgpack",
-                 help="checkpoint path (default outputs/segnet.msgpack: a run never overwrites the "
-                      "packaged weights unless asked to; `--recipe models/weights/segnet.json` "
-                      "re-creates them)")
-  p.add_argument("--quick", action="store_true",
-                 help="a tiny run (minutes): fewer images and steps; for smoke tests")
-  p.add_argument("--steps", type=int, default=None)
-  p.add_argument("--batch-size", type=int, default=TrainConfig().batch_size)
-  p.add_argument("--lr", type=float, default=TrainConfig().learning_rate)
-  p.add_argument("--weight-decay", type=float, default=TrainConfig().weight_decay)
-  p.add_argument("--warmup", type=int, default=TrainConfig().warmup_steps)
-  p.add_argument("--color-strength", type=float, default=TrainConfig().color_strength,
-                 help="scale of the colour augmentation (0 = geometry and noise only)")
-  p.add_argument("--blur-prob", type=float, default=TrainConfig().blur_prob)
-  p.add_argument("--blur-max-sigma", type=float, default=TrainConfig().blur_max_sigma)
-  p.add_argument("--noise-min", type=float, default=TrainConfig().noise_min)
-  p.add_argument("--noise-max", type=float, default=TrainConfig().noise_max)
-  p.add_argument("--sensing", choices=("on", "off"), default="off",
-                 help="render the views with the embedded world's view-dependent camera model "
-                      "(sample_views' default since datasets ecb82f6) or without it (the "
-                      "renderer the shipped weights were trained with)")
-  p.add_argument("--zoom-max", type=float, default=TrainConfig().zoom_max)
-  p.add_argument("--region-color-prob", type=float, default=TrainConfig().region_color_prob,
-                 help="probability per image of recolouring each class region on its own")
-  p.add_argument("--texture-prob", type=float, default=TrainConfig().texture_prob,
-                 help="probability per region of a random stripe/check/wave pattern")
-  p.add_argument("--input-norm", action=argparse.BooleanOptionalAction,
-                 default=net.SegNetConfig.input_norm,
-                 help="standardise each image per channel inside the network")
-  p.add_argument("--save-every", type=int, default=250,
-                 help="steps between partial checkpoints (<out>.partial.msgpack); 0 = never")
-  p.add_argument("--height", type=int, default=96)
-  p.add_argument("--width", type=int, default=128)
-  p.add_argument("--num-train", type=int, default=None)
-  p.add_argument("--num-eval", type=int, default=None, help="images per evaluation split")
-  p.add_argument("--eval-samples", type=int, default=16, help="M for the MC evaluation")
-  p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--shift", type=float, default=1.0, help="test-domain shift strength")
-  p.add_argument("--cache", default=None, help="folder to cache rendered views in")
-  p.add_argument("--stem-width", type=int, default=net.SegNetConfig.stem_width)
-  p.add_argument("--widths", default=",".join(map(str, net.SegNetConfig.widths)))
-  p.add_argument("--strides", default=",".join(map(str, net.SegNetConfig.strides)))
-  p.add_argument("--dilations", default=",".join(map(str, net.SegNetConfig.dilations)))
-  p.add_argument("--blocks-per-stage", type=int, default=net.SegNetConfig.blocks_per_stage)
-  p.add_argument("--aspp-width", type=int, default=net.SegNetConfig.aspp_width)
-  p.add_argument("--aspp-rates", default=",".join(map(str, net.SegNetConfig.aspp_rates)))
-  p.add_argument("--norm-groups", type=int, default=net.SegNetConfig.norm_groups)
-  p.add_argument("--dropout", type=float, default=net.SegNetConfig.dropout_rate)
-  p.add_argument("--recipe", default=None,
-                 help="a training record (e.g. models/weights/segnet.json): its architecture, "
-                      "data and optimisation settings become the defaults, so "
-                      "`--recipe models/weights/segnet.json` re-runs the shipped recipe")
-  known, _ = p.parse_known_args(argv)
-  if known.recipe is not None:
-    p.set_defaults(**recipe_defaults(json.loads(pathlib.Path(known.recipe).read_text())))
-  return p.parse_args(argv)
+# ---------------------------------------------------------------------------------------------
+# The config's fields as flags, recipes and records: all of it derived from `Config`.
 
 
-# Training-config fields the command line does not expose: a recipe must use their defaults.
-_FIXED_TRAIN_FIELDS = ("clip_norm", "class_weight_power", "class_weight_max")
+class _Leaf(NamedTuple):
+  """One settable field of `Config`, wherever it is nested."""
+
+  name: str                        # field name, unique over the config ("learning_rate")
+  owner: tuple[str, ...]           # attributes leading to its dataclass: (), ("train",), ...
+  kind: Any                        # its type annotation
+  default: Any
+  flag: str
+  help: str
+  choices: tuple[str, ...] | None
+  record: str                      # dotted path in the recipe document
+  absent: Any                      # dataclasses.MISSING: a recipe must carry it
 
 
-def recipe_defaults(recipe: dict[str, Any]) -> dict[str, Any]:
-  """Command-line defaults that reproduce a run from its JSON record (`segnet.json`).
+def _attribute_docs(cls: type) -> dict[str, str]:
+  """`{field: first sentence}` from a Google-style `Attributes:` docstring section."""
+  docs, name, inside = {}, None, False
+  for line in (cls.__doc__ or "").splitlines():
+    text = line.strip()
+    if text == "Attributes:":
+      inside = True
+    elif inside and ":" in text and text.split(":")[0].isidentifier():
+      name, body = text.split(":", 1)
+      docs[name] = body.strip()
+    elif inside and text and name:
+      docs[name] += " " + text
+    elif inside and not text and docs:
+      break
+  return {k: v.split(". ")[0].rstrip(".") for k, v in docs.items()}
+
+
+@functools.cache
+def _leaves(cls: type = Config, owner: tuple[str, ...] = (), record: str = "",
+            flags: tuple[tuple[str, str], ...] = (), hidden: tuple[str, ...] = ()
+            ) -> tuple[_Leaf, ...]:
+  """The settable fields of `cls` and of its sections, in declaration order."""
+  hints = typing.get_type_hints(cls)
+  defaults, docs, out = cls(), _attribute_docs(cls), []
+  for f in dataclasses.fields(cls):
+    kind, meta = hints[f.name], f.metadata
+    if dataclasses.is_dataclass(kind):
+      out += _leaves(kind, owner + (f.name,), meta["record"],
+                     tuple(sorted(meta.get("flags", {}).items())), tuple(meta.get("hidden", ())))
+      continue
+    if f.name in hidden:
+      continue
+    flag = meta.get("flag") or dict(flags).get(f.name) or "--" + f.name.replace("_", "-")
+    absent = meta.get("absent", dataclasses.MISSING)
+    out.append(_Leaf(f.name, owner, kind, getattr(defaults, f.name), flag,
+                     meta.get("help", docs.get(f.name, "")), meta.get("choices"),
+                     meta.get("record") or f"{record or 'record'}.{f.name}", absent))
+  names = [leaf.name for leaf in out]
+  assert len(set(names)) == len(names), f"config field names must be unique: {names}"
+  return tuple(out)
+
+
+def _leaf_by_name() -> dict[str, _Leaf]:
+  return {leaf.name: leaf for leaf in _leaves()}
+
+
+def _get(config: Config, leaf: _Leaf) -> Any:
+  obj = config
+  for attr in leaf.owner:
+    obj = getattr(obj, attr)
+  return getattr(obj, leaf.name)
+
+
+def _format(value: Any) -> str:
+  """A value as its flag text (`(24, 48)` → `24,48`)."""
+  return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def _parse_bool(text: str) -> bool:
+  if text.lower() in ("1", "true", "yes", "on"):
+    return True
+  if text.lower() in ("0", "false", "no", "off"):
+    return False
+  raise ValueError(f"not a boolean: {text!r}")
+
+
+def _text_parser(kind: Any) -> Callable[[str], Any]:
+  """Parses a flag's text into a value of the annotation `kind`."""
+  if kind is bool:
+    return _parse_bool
+  if typing.get_origin(kind) is tuple:
+    item = typing.get_args(kind)[0]
+
+    def items(text: str) -> tuple[Any, ...]:
+      return tuple(item(v) for v in text.split(",") if v.strip())
+
+    items.__name__ = f"comma-separated {item.__name__}"  # argparse names it in its errors
+    return items
+  return kind
+
+
+def _coerce(leaf: _Leaf, value: Any) -> Any:
+  """A value read from JSON as the field's type (`1` → `1.0` for a float, list → tuple)."""
+  if leaf.kind is float and isinstance(value, int) and not isinstance(value, bool):
+    return float(value)
+  if typing.get_origin(leaf.kind) is tuple and isinstance(value, list):
+    return tuple(value)
+  return value
+
+
+def replace_fields(config: Config, values: dict[str, Any]) -> Config:
+  """`dataclasses.replace` by field name, wherever the field is nested.
+
+  Args:
+    config: the config to start from.
+    values: `{field name: value}`, e.g. `{"learning_rate": 1e-3, "widths": (32, 64)}`.
+
+  Returns:
+    The new `Config` (each section is rebuilt once, so its checks see all changes together).
+
+  Raises:
+    ValueError: an unknown field name, or values a section refuses.
+  """
+  leaves = _leaf_by_name()
+  unknown = sorted(set(values) - set(leaves))
+  if unknown:
+    raise ValueError(f"unknown config fields {unknown}; known: {sorted(leaves)}")
+
+  def rebuild(obj, owner):
+    changes = {k: v for k, v in values.items() if leaves[k].owner == owner}
+    for f in dataclasses.fields(obj):
+      sub = getattr(obj, f.name)
+      if dataclasses.is_dataclass(sub):
+        new = rebuild(sub, owner + (f.name,))
+        if new is not sub:
+          changes[f.name] = new
+    return dataclasses.replace(obj, **changes) if changes else obj
+
+  return rebuild(config, ())
+
+
+def _sections() -> dict[str, tuple[type, str, bool]]:
+  """`{field: (class, record path, stored whole)}` of `Config`'s nested configs."""
+  hints = typing.get_type_hints(Config)
+  return {f.name: (hints[f.name], f.metadata["record"], hasattr(hints[f.name], "from_dict"))
+          for f in dataclasses.fields(Config) if dataclasses.is_dataclass(hints[f.name])}
+
+
+def _lookup(doc: dict[str, Any], path: str) -> Any:
+  """`doc["a"]["b"]` for `path="a.b"`; a missing key is a `KeyError` naming `path`."""
+  node = doc
+  for part in path.split("."):
+    if not isinstance(node, dict) or part not in node:
+      raise KeyError(path)
+    node = node[part]
+  return node
+
+
+def config_from_recipe(recipe: dict[str, Any]) -> Config:
+  """The configuration a recipe (a run's JSON record, e.g. `segnet.json`) was trained with.
+
+  Every field is read from its place in the record (`option(record=...)`); a field the record
+  lacks takes its `absent` value (the setting of the code that wrote such records), and is an
+  error if it has none. A section stored whole (the architecture) is read by its own
+  `from_dict`; a section stored field by field (`record.train_config`) must not hold fields
+  this code does not know (written by other code, it would not replay).
 
   Args:
     recipe: `{"config": SegNetConfig dict, "record": {"seed", "data", "train_config", ...}}`.
 
   Returns:
-    `{argparse dest: value}`.
+    The `Config`.
 
   Raises:
-    ValueError: the record lacks a field, or fixes a setting the command line cannot set to a
-      value other than this code's default.
+    ValueError: a field is missing, unknown or invalid.
   """
+  values, whole = {}, {}
   try:
-    config = net.SegNetConfig.from_dict(recipe["config"])
-    record = recipe["record"]
-    data, tc = record["data"], record["train_config"]
-    defaults = {
-        "seed": record["seed"], "height": data["height"], "width": data["width"],
-        "num_train": data["train"]["num_images"], "num_eval": data["test"]["num_images"],
-        "shift": data["test"]["shift"],
-        "steps": tc["steps"], "batch_size": tc["batch_size"], "lr": tc["learning_rate"],
-        "warmup": tc["warmup_steps"], "weight_decay": tc["weight_decay"],
-        "color_strength": tc["color_strength"],
-        "eval_samples": record.get("eval_num_samples", 16),
-    }
+    for name, (cls, path, stored_whole) in _sections().items():
+      node = _lookup(recipe, path)
+      if stored_whole:
+        whole[name] = cls.from_dict(node)
+        continue
+      unknown = sorted(set(node) - {f.name for f in dataclasses.fields(cls)})
+      if unknown:
+        raise ValueError(f"the recipe's {path} sets {unknown}, which this code does not know; "
+                         "it cannot replay that run")
+    for leaf in _leaves():
+      if leaf.owner and leaf.owner[0] in whole:
+        continue
+      parent, _, key = leaf.record.rpartition(".")
+      node = _lookup(recipe, parent)
+      if key in node:
+        values[leaf.name] = _coerce(leaf, node[key])
+      elif leaf.absent is dataclasses.MISSING:
+        raise KeyError(leaf.record)
+      else:
+        values[leaf.name] = leaf.absent(node) if callable(leaf.absent) else leaf.absent
   except KeyError as e:
-    raise ValueError(f"the recipe lacks field {e}; pass a segnet.json written by this command")
-  # Augmentation fields added after the first records; absent means "off" (the old recipe).
-  defaults.update(blur_prob=tc.get("blur_prob", 0.0), blur_max_sigma=tc.get("blur_max_sigma", 1.5),
-                  noise_max=tc.get("noise_max", 0.02), zoom_max=tc.get("zoom_max", 1.0),
-                  region_color_prob=tc.get("region_color_prob", 0.0),
-                  texture_prob=tc.get("texture_prob", 0.0),
-                  sensing=data.get("sensing", "off"))
-  # A record with noise_max but no noise_min drew the level from [0, noise_max].
-  defaults["noise_min"] = tc.get("noise_min", 0.0 if "noise_max" in tc else 0.02)
-  for name in _FIXED_TRAIN_FIELDS:
-    if name in tc and tc[name] != getattr(TrainConfig(), name):
-      raise ValueError(f"the recipe sets {name}={tc[name]}, which the command line cannot "
-                       f"set (this code uses {getattr(TrainConfig(), name)})")
-  defaults.update(
-      stem_width=config.stem_width, widths=",".join(map(str, config.widths)),
-      strides=",".join(map(str, config.strides)),
-      dilations=",".join(map(str, config.dilations)),
-      blocks_per_stage=config.blocks_per_stage, aspp_width=config.aspp_width,
-      aspp_rates=",".join(map(str, config.aspp_rates)), dropout=config.dropout_rate)
-  defaults["norm_groups"] = config.norm_groups
-  defaults["input_norm"] = config.input_norm
-  return defaults
+    raise ValueError(f"the recipe lacks field {e.args[0]!r}; pass a segnet.json written by "
+                     "this command") from None
+  return dataclasses.replace(replace_fields(Config(), values), **whole)
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-  args = parse_args(argv)
-  steps = args.steps if args.steps is not None else (40 if args.quick else TrainConfig().steps)
-  num_train = args.num_train if args.num_train is not None else (64 if args.quick else NUM_TRAIN)
-  num_eval = args.num_eval if args.num_eval is not None else (16 if args.quick else 48)
-  ints = lambda text: tuple(int(v) for v in text.split(","))
+def config_to_recipe(config: Config) -> dict[str, Any]:
+  """The inverse of `config_from_recipe`: `{"config": {...}, "record": {...}}`, JSON-ready.
+
+  Each field goes to its place in the record, so records keep the layout that earlier code
+  wrote and reads (`record.train_config` is `dataclasses.asdict(config.train)`, `config` is
+  `config.model.to_dict()`).
+  """
+  doc = {}
+
+  def put(path, value):
+    *parents, key = path.split(".")
+    node = doc
+    for part in parents:
+      node = node.setdefault(part, {})
+    node[key] = list(value) if isinstance(value, tuple) else value
+
+  whole = {name: path for name, (_, path, stored_whole) in _sections().items() if stored_whole}
+  for name, path in whole.items():
+    put(path, getattr(config, name).to_dict())
+  for leaf in _leaves():
+    if not (leaf.owner and leaf.owner[0] in whole):
+      put(leaf.record, _get(config, leaf))
+  return doc
+
+
+def to_argv(config: Config) -> list[str]:
+  """Flags that re-create `config` from the defaults (those of fields that differ)."""
+  argv, default = [], Config()
+  for leaf in _leaves():
+    value = _get(config, leaf)
+    if value == _get(default, leaf):
+      continue
+    if leaf.kind is bool:
+      argv.append(leaf.flag if value else "--no-" + leaf.flag[2:])
+    else:
+      argv += [leaf.flag, _format(value)]
+  return argv
+
+
+class _SetField(argparse.Action):
+  """`--set name=value`: sets a config field by name, exactly as its own flag would."""
+
+  def __call__(self, parser, namespace, text, option_string=None):
+    name, sep, value = text.partition("=")
+    leaf = _leaf_by_name().get(name.strip().replace("-", "_"))
+    if not sep or leaf is None:
+      parser.error(f"--set {text}: expected NAME=VALUE with NAME one of "
+                   f"{', '.join(sorted(_leaf_by_name()))}")
+    try:
+      parsed = _text_parser(leaf.kind)(value)
+    except ValueError as e:
+      parser.error(f"--set {text}: {e}")
+    if leaf.choices is not None and parsed not in leaf.choices:
+      parser.error(f"--set {text}: choose from {', '.join(leaf.choices)}")
+    setattr(namespace, leaf.name, parsed)
+
+
+def build_parser() -> argparse.ArgumentParser:
+  """The command line: one flag per `Config` field, plus how to run (`--out`, ...).
+
+  Config flags default to "not given", so a recipe's values survive unless a flag (or `--set`)
+  overrides them; `--help` shows the `Config` defaults.
+  """
+  p = argparse.ArgumentParser(
+      prog=checkpoint.TRAIN_COMMAND, description=__doc__.split("\n")[0],
+      usage="%(prog)s [--recipe RECIPE] [--quick] [--out OUT] [--set NAME=VALUE] "
+            "[--FIELD VALUE ...]")
+  run = p.add_argument_group("run")
+  run.add_argument("--out", default="outputs/segnet.msgpack",
+                   help="checkpoint path (default outputs/segnet.msgpack: a run never overwrites "
+                        "the packaged weights unless asked to; `--recipe "
+                        "models/weights/segnet.json` re-creates them)")
+  run.add_argument("--quick", action="store_true",
+                   help="a tiny run (minutes): fewer images and steps; for smoke tests")
+  run.add_argument("--recipe", default=None,
+                   help="a training record (e.g. models/weights/segnet.json): its architecture, "
+                        "data and optimisation settings become the defaults, so "
+                        "`--recipe models/weights/segnet.json` re-runs the shipped recipe")
+  run.add_argument("--set", action=_SetField, metavar="NAME=VALUE", default=argparse.SUPPRESS,
+                   help="set any config field by its name (e.g. --set learning_rate=1e-3); "
+                        "like the field's flag, it overrides --recipe and --quick")
+  run.add_argument("--save-every", type=int, default=250,
+                   help="steps between partial checkpoints (<out>.partial.msgpack); 0 = never")
+  run.add_argument("--cache", default=None, help="folder to cache rendered views in")
+  groups = {(): p.add_argument_group("data and evaluation (Config)")}
+  for name, (cls, _, _) in _sections().items():
+    groups[(name,)] = p.add_argument_group(f"{name}: {cls.__name__}")
+  for leaf in _leaves():
+    text = f"{leaf.help} [{leaf.name}; default {_format(leaf.default)}]"
+    group = groups[leaf.owner]
+    if leaf.kind is bool:
+      group.add_argument(leaf.flag, dest=leaf.name, action=argparse.BooleanOptionalAction,
+                         default=argparse.SUPPRESS, help=text)
+    else:
+      group.add_argument(leaf.flag, dest=leaf.name, type=_text_parser(leaf.kind),
+                         choices=leaf.choices, default=argparse.SUPPRESS, help=text,
+                         metavar=None if leaf.choices else leaf.name.upper())
+  return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+  """Parses the command line into the run's `Config`.
+
+  Precedence, lowest first: the `Config` defaults, `--quick`, `--recipe`, then the flags and
+  `--set` in the order given.
+
+  Returns:
+    `Namespace(config, out, cache, save_every, recipe, quick)`.
+  """
+  p = build_parser()
+  args = p.parse_args(argv)
+  config = replace_fields(Config(), QUICK) if args.quick else Config()
+  try:
+    if args.recipe is not None:
+      config = config_from_recipe(json.loads(pathlib.Path(args.recipe).read_text()))
+    given = {leaf.name: getattr(args, leaf.name) for leaf in _leaves()
+             if hasattr(args, leaf.name)}
+    config = replace_fields(config, given)
+  except ValueError as e:
+    p.error(str(e))
+  return argparse.Namespace(config=config, out=args.out, cache=args.cache,
+                            save_every=args.save_every, recipe=args.recipe, quick=args.quick)
+
+
+# ---------------------------------------------------------------------------------------------
+# The run.
+
+
+def data_splits(config: Config) -> dict[str, dict[str, Any]]:
+  """The three rendered splits: `{name: load_domain keyword arguments}`, as recorded."""
+  return {"train": {"domain": "train", "num_images": config.num_train, "seed": config.seed},
+          "heldout": {"domain": "train", "num_images": config.num_eval,
+                      "seed": config.seed + 10_000},
+          "test": {"domain": "test", "num_images": config.num_eval, "seed": config.seed + 20_000,
+                   "shift": config.shift}}
+
+
+def load_data(config: Config, *, cache_dir: str | None = None
+              ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+  """Renders (or reads from `cache_dir`) the splits of `data_splits(config)`.
+
+  Returns:
+    `{name: (rgb (N, H, W, 3) uint8, labels (N, H, W) int32)}`.
+  """
+  return {name: load_domain(height=config.height, width=config.width, cache_dir=cache_dir,
+                            sensing=config.sensing == "on", **split)
+          for name, split in data_splits(config).items()}
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+  """`base` updated recursively with `extra`; a leaf present in both must agree."""
+  out = dict(base)
+  for key, value in extra.items():
+    if isinstance(value, dict) and isinstance(out.get(key), dict):
+      out[key] = _merge(out[key], value)
+    else:
+      assert key not in out or out[key] == value, (key, out[key], value)
+      out[key] = value
+  return out
+
+
+def train_and_evaluate(config: Config, out: str | pathlib.Path = "outputs/segnet.msgpack", *,
+                       cache_dir: str | None = None, save_every: int = 250,
+                       command: str | None = None, progress: bool = True) -> dict[str, Any]:
+  """Renders the data, trains, evaluates, and writes the checkpoint with its record.
+
+  Writes `out` (a `checkpoint.save` file), `out` with suffix `.json` (the recipe document:
+  architecture, class names, record) and, every `save_every` steps while training,
+  `<out>.partial.msgpack` (removed at the end).
+
+  Args:
+    config: the run; `config.model.num_classes` is replaced by the embedded world's.
+    out: checkpoint path.
+    cache_dir: folder to cache rendered views in.
+    save_every: steps between partial checkpoints; 0 = never.
+    command: the command to record; default: the flags that re-create `config`.
+    progress: show a tqdm bar.
+
+  Returns:
+    The training record (also stored in the checkpoint).
+  """
+  if command is None:
+    command = " ".join([checkpoint.TRAIN_COMMAND, *to_argv(config)])
   class_names = dataset_class_names()
-  config = net.SegNetConfig(
-      num_classes=len(class_names), stem_width=args.stem_width, widths=ints(args.widths),
-      strides=ints(args.strides), dilations=ints(args.dilations),
-      blocks_per_stage=args.blocks_per_stage, aspp_width=args.aspp_width,
-      aspp_rates=ints(args.aspp_rates), dropout_rate=args.dropout,
-      norm_groups=args.norm_groups, input_norm=args.input_norm)
-  cfg = TrainConfig(steps=steps, batch_size=args.batch_size, learning_rate=args.lr,
-                    warmup_steps=args.warmup, weight_decay=args.weight_decay,
-                    color_strength=args.color_strength, blur_prob=args.blur_prob,
-                    blur_max_sigma=args.blur_max_sigma, noise_min=args.noise_min,
-                    noise_max=args.noise_max,
-                    zoom_max=args.zoom_max, region_color_prob=args.region_color_prob,
-                    texture_prob=args.texture_prob)
-  size = dict(height=args.height, width=args.width, cache_dir=args.cache,
-              sensing=args.sensing == "on")
+  config = dataclasses.replace(config, model=dataclasses.replace(
+      config.model, num_classes=len(class_names)))
+  model, cfg, steps = config.model, config.train, config.train.steps
+  recipe = config_to_recipe(config)
 
   t0 = time.time()
-  print(f"rendering data: {num_train} train, {num_eval} val, {num_eval} test at "
-        f"{args.height}x{args.width}", flush=True)
-  train_x, train_y = load_domain("train", num_train, seed=args.seed, **size)
-  val_x, val_y = load_domain("train", num_eval, seed=args.seed + 10_000, **size)
-  test_x, test_y = load_domain("test", num_eval, seed=args.seed + 20_000, shift=args.shift,
-                               **size)
+  print(f"rendering data: {config.num_train} train, {config.num_eval} val, {config.num_eval} "
+        f"test at {config.height}x{config.width}", flush=True)
+  data = load_data(config, cache_dir=cache_dir)
+  (train_x, train_y), (test_x, test_y) = data["train"], data["test"]
   data_s = time.time() - t0
-  weights = class_weights(train_y, config.num_classes, power=cfg.class_weight_power,
+  weights = class_weights(train_y, model.num_classes, power=cfg.class_weight_power,
                           max_weight=cfg.class_weight_max)
   print(f"data in {data_s:.0f} s; class frequencies "
-        f"{np.round(np.bincount(train_y.ravel(), minlength=config.num_classes) / train_y.size, 4)}"
+        f"{np.round(np.bincount(train_y.ravel(), minlength=model.num_classes) / train_y.size, 4)}"
         f"; weights {np.round(weights, 2)}", flush=True)
 
-  key = jax.random.key(args.seed)
+  key = jax.random.key(config.seed)
   k_init, k_train, k_eval = jax.random.split(key, 3)
-  graphdef, params = net.init(config, key=k_init)
+  graphdef, params = net.init(model, key=k_init)
   print(f"SegNet: {net.count_params(params):,} parameters, output stride "
-        f"{config.output_stride}", flush=True)
-  partial_path = pathlib.Path(args.out).with_suffix(".partial.msgpack")
+        f"{model.output_stride}", flush=True)
+  partial_path = pathlib.Path(out).with_suffix(".partial.msgpack")
   t1 = time.time()
 
   def save_partial(done, current, losses_so_far):
@@ -681,59 +1041,61 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"step {done}/{steps}: loss(last 50) {losses_so_far[-50:].mean():.3f}, "
           f"{done / elapsed:.2f} steps/s, elapsed {elapsed / 60:.1f} min, "
           f"ETA {(steps - done) * elapsed / done / 60:.1f} min", flush=True)
-    checkpoint.save(partial_path, current, config=config, class_names=class_names,
-                    record={"partial": True, "steps_done": done, "train_config": cfg._asdict(),
-                            "command": "python -m models.train " + " ".join(
-                                sys.argv[1:] if argv is None else argv)})
+    checkpoint.save(partial_path, current, config=model, class_names=class_names,
+                    record={**recipe["record"], "partial": True, "steps_done": done,
+                            "command": command})
 
   params, losses = fit(graphdef, params, train_x, train_y, key=k_train, cfg=cfg,
-                       weights=weights, callback=save_partial, callback_every=args.save_every)
+                       weights=weights, progress=progress, callback=save_partial,
+                       callback_every=save_every)
   train_s = time.time() - t1
   print(f"trained {steps} steps in {train_s:.0f} s; loss {losses[:10].mean():.3f} -> "
         f"{losses[-10:].mean():.3f}", flush=True)
 
   t2 = time.time()
   results = {}
-  for name, (x, y) in {"train_heldout": (val_x, val_y), "test_shifted": (test_x, test_y)}.items():
+  for name, split in {"train_heldout": "heldout", "test_shifted": "test"}.items():
+    x, y = data[split]
     results[name] = evaluate.evaluate_arrays(
         graphdef, params, x, y, key=jax.random.fold_in(k_eval, len(results)),
-        num_samples=args.eval_samples, num_classes=config.num_classes)
+        num_samples=config.eval_samples, num_classes=model.num_classes)
     print(f"{name}: {json.dumps(results[name]['summary'])}", flush=True)
   eval_s = time.time() - t2
 
-  record = {
-      "command": "python -m models.train " + " ".join(sys.argv[1:] if argv is None else argv),
-      "seed": args.seed,
+  provenance = {
       "data": {"generator": "jaxfusion.datasets.synthetic.sample_views",
-               "version": dataset_version(), "height": args.height, "width": args.width,
-               "sensing": args.sensing,
+               "version": dataset_version(),
                "train_sha256": hashlib.sha256(train_x.tobytes() + train_y.tobytes()).hexdigest(),
                "test_sha256": hashlib.sha256(test_x.tobytes() + test_y.tobytes()).hexdigest(),
-               "train": {"domain": "train", "num_images": num_train, "seed": args.seed},
-               "heldout": {"domain": "train", "num_images": num_eval,
-                           "seed": args.seed + 10_000},
-               "test": {"domain": "test", "num_images": num_eval, "seed": args.seed + 20_000,
-                        "shift": args.shift}},
-      "train_config": cfg._asdict(),
+               **data_splits(config)},
+  }
+  record = _merge(_merge({"command": command}, recipe["record"]), provenance)
+  record.update({
       "class_weights": [round(float(w), 4) for w in weights],
       "num_params": net.count_params(params),
       "loss_first10": float(losses[:10].mean()), "loss_last10": float(losses[-10:].mean()),
       "seconds": {"data": round(data_s, 1), "train": round(train_s, 1),
                   "eval": round(eval_s, 1)},
       "eval": {k: v["summary"] for k, v in results.items()},
-      "eval_num_samples": args.eval_samples,
       "platform": {"jax": jax.__version__, "python": platform.python_version(),
                    "machine": platform.machine(), "devices": str(jax.devices())},
-  }
-  out = checkpoint.save(args.out, params, config=config, class_names=class_names,
-                        record=record)
+  })
+  out = checkpoint.save(out, params, config=model, class_names=class_names, record=record)
   record_path = pathlib.Path(out).with_suffix(".json")
-  record_path.write_text(json.dumps({"config": config.to_dict(), "class_names": class_names,
+  record_path.write_text(json.dumps({"config": recipe["config"], "class_names": class_names,
                                      "record": record}, indent=2) + "\n")
   partial_path.unlink(missing_ok=True)  # The finished checkpoint supersedes it.
   print(f"wrote {out} ({pathlib.Path(out).stat().st_size / 1e6:.2f} MB) and {record_path}",
         flush=True)
   return record
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+  """`python -m models.train`: flags → `Config` → `train_and_evaluate`."""
+  args = parse_args(argv)
+  command = checkpoint.TRAIN_COMMAND + " " + " ".join(sys.argv[1:] if argv is None else argv)
+  return train_and_evaluate(args.config, args.out, cache_dir=args.cache,
+                            save_every=args.save_every, command=command)
 
 
 if __name__ == "__main__":

@@ -123,55 +123,6 @@ def test_random_zoom_keeps_labels_aligned_with_colour():
   np.testing.assert_array_equal(np.asarray(same_l), labels[0])
 
 
-def test_recipe_of_a_record_reproduces_its_settings(tmp_path):
-  config = net.tiny_config(7)
-  cfg = train.TrainConfig(steps=7, batch_size=3, learning_rate=1e-3, warmup_steps=2,
-                          blur_prob=0.25, zoom_max=1.2)
-  record = {"seed": 5, "eval_num_samples": 4, "train_config": cfg._asdict(),
-            "data": {"height": 24, "width": 32, "train": {"num_images": 9},
-                     "test": {"num_images": 2, "shift": 0.5}}}
-  path = tmp_path / "segnet.json"
-  path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
-  args = train.parse_args(["--recipe", str(path), "--steps", "3"])
-  assert args.steps == 3  # explicit flags still win
-  assert (args.seed, args.height, args.width, args.num_train, args.num_eval, args.shift) == (
-      5, 24, 32, 9, 2, 0.5)
-  assert (args.batch_size, args.lr, args.warmup, args.blur_prob, args.zoom_max) == (
-      3, 1e-3, 2, 0.25, 1.2)
-  assert (args.widths, args.strides, args.stem_width, args.aspp_rates, args.norm_groups) == (
-      "8", "2", 8, "2", 4)
-  # An old record without the newer augmentation fields means they were off.
-  del record["train_config"]["blur_prob"], record["train_config"]["zoom_max"]
-  path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
-  args = train.parse_args(["--recipe", str(path)])
-  assert (args.blur_prob, args.zoom_max, args.noise_min, args.sensing) == (0.0, 1.0, 0.02, "off")
-  # noise_max without noise_min: the level was drawn from [0, noise_max]; neither: fixed 0.02.
-  del record["train_config"]["noise_min"]
-  assert train.recipe_defaults({"config": config.to_dict(), "record": record})["noise_min"] == 0.0
-  del record["train_config"]["noise_max"]
-  record["data"]["sensing"] = "on"
-  defaults = train.recipe_defaults({"config": config.to_dict(), "record": record})
-  assert (defaults["noise_min"], defaults["noise_max"], defaults["sensing"]) == (0.02, 0.02, "on")
-  with pytest.raises(ValueError, match="lacks field"):
-    train.recipe_defaults({"config": config.to_dict(), "record": {}})
-
-
-def test_shipped_recipe_replays_the_default_net_and_never_overwrites_it():
-  recipe = checkpoint.WEIGHTS_DIR / "segnet.json"
-  record = json.loads(recipe.read_text())
-  args = train.parse_args(["--recipe", str(recipe)])
-  config, cfg = record["config"], record["record"]["train_config"]
-  assert (args.stem_width, args.widths, args.aspp_width, args.input_norm) == (
-      config["stem_width"], ",".join(map(str, config["widths"])), config["aspp_width"], True)
-  assert (args.steps, args.num_train, args.warmup, args.region_color_prob, args.texture_prob) == (
-      cfg["steps"], record["record"]["data"]["train"]["num_images"], cfg["warmup_steps"],
-      cfg["region_color_prob"], cfg["texture_prob"])
-  # A training run writes elsewhere unless told to replace the packaged weights.
-  for argv in ([], ["--recipe", str(recipe)]):
-    out = train.parse_args(argv).out
-    assert pathlib.Path(out).resolve() != checkpoint.PRETRAINED_PATH.resolve(), out
-
-
 def _rbg(seed):
   """A key for the region-randomisation tests: any random numbers do, and rbg's ops compile
   several times faster than threefry's on a CPU."""
@@ -238,20 +189,247 @@ def test_augment_with_region_randomisation_keeps_labels_and_range():
   assert float(out_x.min()) >= 0.0 and float(out_x.max()) <= 1.0
 
 
-def test_recipe_carries_region_randomisation_and_input_norm(tmp_path):
+# -- The configuration: flags, recipes and records, all derived from `train.Config`. --------------
+
+RECIPES = {name: checkpoint.WEIGHTS_DIR / f"{name}.json"
+           for name in ("segnet", "segnet_v1", "candidate_resnet18")}
+
+# What the command produced before `Config` was the single source (captured by running the old
+# `parse_args` and `main` up to training): the defaults, then per command line what differs.
+OLD_DEFAULT = {
+    "seed": 0, "height": 96, "width": 128, "num_train": 1600, "num_eval": 48, "shift": 1.0,
+    "sensing": "off", "eval_samples": 16,
+    "steps": 3000, "batch_size": 12, "learning_rate": 0.003, "warmup_steps": 60,
+    "weight_decay": 0.0001, "clip_norm": 1.0, "class_weight_power": 0.5,
+    "class_weight_max": 8.0, "color_strength": 1.0, "blur_prob": 0.0, "blur_max_sigma": 1.5,
+    "noise_min": 0.02, "noise_max": 0.02, "zoom_max": 1.0, "region_color_prob": 0.0,
+    "texture_prob": 0.0,
+    "num_classes": 7, "stem_width": 24, "widths": (24, 48, 64, 96), "strides": (1, 2, 2, 1),
+    "dilations": (1, 1, 1, 2), "blocks_per_stage": 1, "aspp_width": 64, "aspp_rates": (2, 4, 6),
+    "dropout_rate": 0.3, "norm_groups": 8, "input_norm": False,
+    "out": "outputs/segnet.msgpack", "cache": None, "save_every": 250,
+}
+SEGNET = {
+    "num_train": 4000, "steps": 6500, "warmup_steps": 100, "blur_prob": 0.3, "noise_min": 0.0,
+    "noise_max": 0.04, "region_color_prob": 0.5, "texture_prob": 0.5,
+    "stem_width": 32, "widths": (32, 64, 96, 128), "aspp_width": 96, "input_norm": True,
+}
+OLD_COMMANDS = {
+    "default": ([], {}),
+    "quick": (["--quick"], {"steps": 40, "num_train": 64, "num_eval": 16}),
+    "segnet": (["--recipe", str(RECIPES["segnet"])], SEGNET),
+    "segnet_v1": (["--recipe", str(RECIPES["segnet_v1"])], {}),
+    "candidate_resnet18": (["--recipe", str(RECIPES["candidate_resnet18"])], {
+        "num_train": 2400, "sensing": "on", "steps": 1200, "warmup_steps": 100,
+        "blur_prob": 0.5, "noise_min": 0.0, "noise_max": 0.04, "zoom_max": 1.4,
+        "widths": (32, 64, 128, 192), "strides": (2, 2, 1, 1), "dilations": (1, 1, 2, 4),
+        "blocks_per_stage": 2, "aspp_width": 128}),
+    # The shipped net's own recorded command (less --cache and --out): the same as its recipe.
+    "segnet_command": ("--num-train 4000 --steps 6500 --warmup 100 --stem-width 32 --widths "
+                       "32,64,96,128 --aspp-width 96 --input-norm --region-color-prob 0.5 "
+                       "--texture-prob 0.5 --blur-prob 0.3 --noise-min 0.0 --noise-max 0.04"
+                       .split(), SEGNET),
+    # Flags override a recipe.
+    "segnet_override": (["--recipe", str(RECIPES["segnet"]), "--steps", "5", "--lr", "0.001",
+                         "--no-input-norm", "--widths", "16,32,48,64", "--stem-width", "16",
+                         "--aspp-width", "32"],
+                        {**SEGNET, "steps": 5, "learning_rate": 0.001, "input_norm": False,
+                         "widths": (16, 32, 48, 64), "stem_width": 16, "aspp_width": 32}),
+    # Every other old flag; --quick only changes what is not given.
+    "flags": ("--quick --batch-size 4 --weight-decay 0.01 --color-strength 0.5 --blur-max-sigma 2 "
+              "--zoom-max 1.3 --sensing on --save-every 0 --height 48 --width 64 --num-eval 3 "
+              "--eval-samples 2 --seed 7 --shift 0.5 --cache /tmp/c --strides 1,2,2,2 "
+              "--dilations 1,1,1,1 --blocks-per-stage 2 --aspp-rates 1,2,3 --norm-groups 4 "
+              "--dropout 0.1 --out /tmp/x.msgpack".split(), {
+                  "seed": 7, "height": 48, "width": 64, "num_train": 64, "num_eval": 3,
+                  "shift": 0.5, "sensing": "on", "eval_samples": 2, "batch_size": 4,
+                  "blur_max_sigma": 2.0, "color_strength": 0.5, "steps": 40,
+                  "weight_decay": 0.01, "zoom_max": 1.3, "aspp_rates": (1, 2, 3),
+                  "blocks_per_stage": 2, "dilations": (1, 1, 1, 1), "dropout_rate": 0.1,
+                  "norm_groups": 4, "strides": (1, 2, 2, 2), "out": "/tmp/x.msgpack",
+                  "cache": "/tmp/c", "save_every": 0}),
+}
+
+
+def _flat(args):
+  """Every setting of a parsed command line as `{name: value}` (sections flattened)."""
+  config = dataclasses.asdict(args.config)
+  flat = {k: v for k, v in config.items() if not isinstance(v, dict)}
+  for name in ("train", "model"):
+    flat.update(config[name])
+  return {**flat, "out": args.out, "cache": args.cache, "save_every": args.save_every}
+
+
+@pytest.mark.parametrize("case", sorted(OLD_COMMANDS))
+def test_command_lines_and_shipped_recipes_give_the_configuration_they_gave_before(case):
+  argv, changes = OLD_COMMANDS[case]
+  expected = {**OLD_DEFAULT, **changes}
+  got = _flat(train.parse_args(argv))
+  assert got == expected
+  assert {k: type(v) for k, v in got.items()} == {k: type(v) for k, v in expected.items()}
+
+
+@pytest.mark.parametrize("name", sorted(RECIPES))
+def test_a_config_survives_its_record_and_its_command_line(name):
+  config = train.config_from_recipe(json.loads(RECIPES[name].read_text()))
+  assert train.config_from_recipe(json.loads(json.dumps(train.config_to_recipe(config)))) == config
+  assert train.parse_args(train.to_argv(config)).config == config
+  # to_argv spells only what differs from the defaults.
+  assert train.to_argv(train.Config()) == []
+
+
+def test_written_records_keep_the_shipped_layout():
+  recipe = json.loads(RECIPES["segnet"].read_text())
+  written = train.config_to_recipe(train.config_from_recipe(recipe))
+  assert written["config"] == recipe["config"]
+  record = recipe["record"]
+  assert written["record"]["train_config"] == record["train_config"]
+  assert written["record"] == {
+      "seed": record["seed"], "eval_num_samples": record["eval_num_samples"],
+      "train_config": record["train_config"],
+      "data": {"height": record["data"]["height"], "width": record["data"]["width"],
+               "sensing": record["data"]["sensing"],
+               "train": {"num_images": record["data"]["train"]["num_images"]},
+               "test": {k: record["data"]["test"][k] for k in ("num_images", "shift")}}}
+  # The training section is the dataclass itself.
+  assert written["record"]["train_config"] == dataclasses.asdict(
+      train.config_from_recipe(recipe).train)
+
+
+def _recipe(**train_config):
   config = dataclasses.replace(net.tiny_config(7), input_norm=True)
-  cfg = train.TrainConfig(steps=7, region_color_prob=0.5, texture_prob=0.25)
-  record = {"seed": 1, "train_config": cfg._asdict(),
+  cfg = dataclasses.asdict(train.TrainConfig(steps=7, batch_size=3, learning_rate=1e-3,
+                                             warmup_steps=2, blur_prob=0.25, zoom_max=1.2,
+                                             region_color_prob=0.5, texture_prob=0.25))
+  cfg.update(train_config)
+  record = {"seed": 5, "eval_num_samples": 4, "train_config": cfg,
             "data": {"height": 24, "width": 32, "train": {"num_images": 9},
-                     "test": {"num_images": 2, "shift": 1.0}}}
+                     "test": {"num_images": 2, "shift": 0.5}}}
+  return {"config": config.to_dict(), "record": record}
+
+
+def test_recipe_fields_added_later_mean_what_the_code_before_them_did(tmp_path):
+  recipe = _recipe()
+  config = train.config_from_recipe(recipe)
+  assert (config.seed, config.height, config.width, config.num_train, config.num_eval,
+          config.shift, config.eval_samples) == (5, 24, 32, 9, 2, 0.5, 4)
+  assert (config.train.steps, config.train.learning_rate, config.train.blur_prob,
+          config.train.region_color_prob, config.model.widths, config.model.input_norm) == (
+              7, 1e-3, 0.25, 0.5, (8,), True)
+  # An old record without the newer augmentation fields means they were off; without
+  # `sensing` it rendered without the camera model; without `input_norm`, raw input.
+  tc = recipe["record"]["train_config"]
+  for name in ("blur_prob", "blur_max_sigma", "zoom_max", "region_color_prob", "texture_prob",
+               "clip_norm", "class_weight_power", "class_weight_max"):
+    del tc[name]
+  del recipe["config"]["input_norm"]
+  config = train.config_from_recipe(recipe)
+  assert (config.train.blur_prob, config.train.blur_max_sigma, config.train.zoom_max,
+          config.train.region_color_prob, config.train.texture_prob, config.sensing,
+          config.model.input_norm) == (0.0, 1.5, 1.0, 0.0, 0.0, "off", False)
+  assert (config.train.clip_norm, config.train.class_weight_power,
+          config.train.class_weight_max) == (1.0, 0.5, 8.0)
+  # noise_max without noise_min: the level was drawn from [0, noise_max]; neither: fixed 0.02.
+  del tc["noise_min"]
+  assert train.config_from_recipe(recipe).train.noise_min == 0.0
+  del tc["noise_max"], recipe["record"]["eval_num_samples"]
+  recipe["record"]["data"]["sensing"] = "on"
+  config = train.config_from_recipe(recipe)
+  assert (config.train.noise_min, config.train.noise_max, config.sensing,
+          config.eval_samples) == (0.02, 0.02, "on", 16)
+  # The command line reads the same file the same way, and explicit flags still win.
   path = tmp_path / "segnet.json"
-  path.write_text(json.dumps({"config": config.to_dict(), "record": record}))
-  args = train.parse_args(["--recipe", str(path)])
-  assert (args.region_color_prob, args.texture_prob, args.input_norm) == (0.5, 0.25, True)
-  # Old records (no such fields) mean off.
-  del record["train_config"]["region_color_prob"], record["train_config"]["texture_prob"]
-  old = net.tiny_config(7).to_dict()
-  del old["input_norm"]
-  defaults = train.recipe_defaults({"config": old, "record": record})
-  assert (defaults["region_color_prob"], defaults["texture_prob"],
-          defaults["input_norm"]) == (0.0, 0.0, False)
+  path.write_text(json.dumps(recipe))
+  args = train.parse_args(["--recipe", str(path), "--steps", "3"])
+  assert args.config == dataclasses.replace(config, train=dataclasses.replace(config.train,
+                                                                              steps=3))
+
+
+def test_recipes_with_missing_or_unknown_fields_are_refused_clearly(tmp_path):
+  with pytest.raises(ValueError, match="lacks field 'record.train_config'"):
+    train.config_from_recipe({"config": net.tiny_config(7).to_dict(), "record": {}})
+  recipe = _recipe()
+  del recipe["record"]["seed"]
+  with pytest.raises(ValueError, match="lacks field 'record.seed'"):
+    train.config_from_recipe(recipe)
+  recipe = _recipe()
+  del recipe["record"]["train_config"]["steps"]
+  with pytest.raises(ValueError, match="lacks field 'record.train_config.steps'"):
+    train.config_from_recipe(recipe)
+  with pytest.raises(ValueError, match="lacks field 'config'"):
+    train.config_from_recipe({"record": _recipe()["record"]})
+  with pytest.raises(ValueError, match=r"sets \['momentum'\], which this code does not know"):
+    train.config_from_recipe(_recipe(momentum=0.9))
+  recipe = _recipe()
+  recipe["config"]["depth"] = 3
+  with pytest.raises(ValueError, match="unknown SegNetConfig fields"):
+    train.config_from_recipe(recipe)
+  # On the command line, the same as a usage error.
+  path = tmp_path / "segnet.json"
+  path.write_text(json.dumps(_recipe(momentum=0.9)))
+  with pytest.raises(SystemExit):
+    train.parse_args(["--recipe", str(path)])
+
+
+def test_set_sets_any_field_by_name_in_command_line_order():
+  args = train.parse_args(["--recipe", str(RECIPES["segnet"]), "--set", "learning_rate=1e-3",
+                           "--set", "widths=16,32,48,64", "--set", "input-norm=false",
+                           "--set", "clip_norm=0.5", "--steps", "9", "--set", "steps=11"])
+  assert (args.config.train.learning_rate, args.config.model.widths,
+          args.config.model.input_norm, args.config.train.clip_norm,
+          args.config.train.steps) == (1e-3, (16, 32, 48, 64), False, 0.5, 11)
+  assert train.parse_args(["--set", "steps=11", "--steps", "9"]).config.train.steps == 9
+  for bad in ("nonsense=1", "steps", "steps=x", "sensing=maybe", "num_classes=3"):
+    with pytest.raises(SystemExit):
+      train.parse_args(["--set", bad])
+  with pytest.raises(SystemExit):  # The architecture's own checks, as a usage error.
+    train.parse_args(["--norm-groups", "5"])
+
+
+def test_help_lists_a_flag_for_every_field():
+  text = train.build_parser().format_help()
+  for leaf in train._leaves():
+    assert leaf.flag in text and f"[{leaf.name};" in text
+  for flag in ("--recipe", "--quick", "--out", "--set", "--cache", "--save-every", "--lr",
+               "--warmup", "--dropout", "--no-input-norm"):
+    assert flag in text
+  assert "num_classes" not in text  # set by the data
+
+
+def test_quick_and_recipe_runs_never_overwrite_the_packaged_weights():
+  for argv in ([], ["--quick"], ["--recipe", str(RECIPES["segnet"])]):
+    out = train.parse_args(argv).out
+    assert out == "outputs/segnet.msgpack"
+    assert pathlib.Path(out).resolve() != checkpoint.PRETRAINED_PATH.resolve(), out
+
+
+def test_train_and_evaluate_writes_a_checkpoint_whose_record_replays_its_config(tmp_path,
+                                                                              monkeypatch):
+  rng = np.random.default_rng(0)
+
+  def load_domain(domain, num_images, *, height, width, seed, shift=1.0, cache_dir=None,
+                  sensing=True):
+    labels = rng.integers(0, 7, (num_images, height, width)).astype(np.int32)
+    return (labels[..., None] * 30).repeat(3, -1).astype(np.uint8), labels
+
+  monkeypatch.setattr(train, "load_domain", load_domain)
+  # The evaluation has tests of its own; here only its place in the record matters.
+  monkeypatch.setattr(train.evaluate, "evaluate_arrays",
+                      lambda *a, **k: {"summary": {"mc_miou": 0.5}})
+  config = train.replace_fields(train.Config(), {
+      "steps": 2, "batch_size": 2, "num_train": 4, "num_eval": 2, "height": 16, "width": 16,
+      "eval_samples": 2, "seed": 3, "sensing": "on", **{
+          k: v for k, v in dataclasses.asdict(net.tiny_config(7)).items()
+          if k != "num_classes"}})
+  out = tmp_path / "run" / "segnet.msgpack"
+  record = train.train_and_evaluate(config, out, save_every=1, progress=False)
+  loaded = checkpoint.load(out, class_names=train.dataset_class_names())
+  assert loaded.config == config.model and loaded.metadata["record"] == record
+  assert record["command"] == " ".join(["python -m models.train", *train.to_argv(config)])
+  assert record["data"]["heldout"] == {"domain": "train", "num_images": 2, "seed": 10_003}
+  assert record["eval"]["test_shifted"] == {"mc_miou": 0.5}
+  assert not out.with_suffix(".partial.msgpack").exists()
+  sidecar = json.loads(out.with_suffix(".json").read_text())
+  assert sidecar["record"] == record
+  assert train.config_from_recipe(sidecar) == config
+  assert train.parse_args(["--recipe", str(out.with_suffix(".json"))]).config == config
