@@ -16,8 +16,8 @@ from jaxfusion.lab import frontend
 from jaxfusion.lab import stats
 from jaxfusion.lab import study
 
-# Shapes shared with tests/test_experiments.py (the capacity of its `demo` run) and
-# tests/test_viewer_scene_data.py, so that compiled fusion steps are reused.
+# Shapes shared with tests/lab/test_demo.py (the capacity of its `demo` run) and
+# tests/lab/test_viewer_scene_data.py, so that compiled fusion steps are reused.
 H, W, CAPACITY = 24, 32, 2**17
 K = 7
 
@@ -178,7 +178,7 @@ def test_cache_key_changes_with_the_images(tmp_path):
 
 
 def test_tiny_study_end_to_end(tmp_path):
-  # Layout seed 0, office, trajectory 0, 3 frames at 24×32: the scene of test_experiments.py,
+  # Layout seed 0, office, trajectory 0, 3 frames at 24×32: the scene of test_demo.py,
   # so that the renderer's compiled shapes are shared when both run.
   config = study.StudyConfig.of(layout_seeds=(0,), shifts=(0.0, 1.0), envs=("office",),
                                 trajectories=(0,), num_frames=3, height=H, width=W,

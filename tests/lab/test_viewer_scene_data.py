@@ -283,7 +283,7 @@ def test_maps_from_jaxfusion_run_carry_poses_and_gt(tmp_path, capsys):
     probs = 0.2 / k + 0.8 * np.eye(k, dtype=np.float32)[np.maximum(seq.labels[t], 0)]
     sources.save_prediction(tmp_path / "pred" / f"{t:06d}.npz", mean=probs)
   out = tmp_path / "run"
-  # Sizes and capacity of tests/test_study.py and test_experiments.py: compiled steps are shared.
+  # Sizes and capacity of tests/lab/test_study.py and test_demo.py: compiled steps are shared.
   assert cli.main(["run", "--data", "synthetic:office/0", "--frames", "3", "--height", "24",
                    "--width", "32", "--rule", "bayes", "--predictions", str(tmp_path / "pred"),
                    "--capacity", "131072", "--out", str(out)]) == 0

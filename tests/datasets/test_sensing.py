@@ -14,7 +14,7 @@ from jaxfusion.datasets import appearance, raycast, sensing, sensor, synthetic, 
 from jaxfusion.datasets import primitives as P
 from jaxfusion.datasets.sensing import CameraState, SensingConfig
 
-SIZE = dict(height=24, width=32)  # the size and sequence of test_datasets_synthetic: shared compiles
+SIZE = dict(height=24, width=32)  # the size and sequence of test_synthetic: shared compiles
 CAM = Camera(30.0, 30.0, 15.0, 10.0)  # 31 × 21 images have their centre pixel on the axis
 H, W = 21, 31
 

@@ -18,7 +18,7 @@ M = 4  # One M for all tests: each distinct M is a separate compilation.
 @pytest.fixture(scope="module")
 def tiny():
   # Weights from an RBG key: XLA on CPU compiles threefry's initialiser several times slower,
-  # and nothing here depends on which weights (test_models_train inits with threefry).
+  # and nothing here depends on which weights (test_train inits with threefry).
   graphdef, params = net.init(net.tiny_config(K), key=jax.random.key(0, impl="rbg"))
   return graphdef, params
 

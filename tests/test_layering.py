@@ -1,0 +1,81 @@
+"""The layers: library (`jaxfusion`) ← networks (`jaxfusion_models`) ← application
+(`jaxfusion.lab`). Dependencies point one way, and `import jaxfusion` stays light."""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+LIBRARY = ROOT / "jaxfusion"
+LAB = LIBRARY / "lab"
+MODELS = ROOT / "models"
+# What `import jaxfusion` must not load: the application, the networks, and the heavy or
+# optional dependencies that only commands, figures, files or the viewer use.
+HEAVY = ("jaxfusion.lab", "jaxfusion_models", "matplotlib", "cv2", "viser", "trimesh")
+
+
+def _imports(path: pathlib.Path, package: str = None) -> set:
+  """Every module an import statement in `path` names, at any depth (function-level imports
+  included), resolved to absolute names (relative ones against `path`'s package)."""
+  tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+  if package is None:
+    package = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
+  names = set()
+  for node in ast.walk(tree):
+    if isinstance(node, ast.Import):
+      names.update(alias.name for alias in node.names)
+    elif isinstance(node, ast.ImportFrom):
+      base = node.module or ""
+      if node.level:
+        parent = package.split(".")[:len(package.split(".")) - node.level + 1]
+        base = ".".join(parent + ([base] if base else []))
+      names.add(base)
+      names.update(f"{base}.{alias.name}" for alias in node.names)
+  return names
+
+
+def _library_modules():
+  for path in sorted(LIBRARY.rglob("*.py")):
+    if LAB in path.parents or path.name == "__main__.py":   # the application; entry points
+      continue
+    yield path
+
+
+def _names(prefix: str, imports: set) -> list:
+  return sorted(n for n in imports if n == prefix or n.startswith(prefix + "."))
+
+
+@pytest.mark.parametrize("path", list(_library_modules()),
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_library_imports_neither_the_application_nor_the_networks(path):
+  imports = _imports(path)
+  assert not _names("jaxfusion.lab", imports), _names("jaxfusion.lab", imports)
+  # `jaxfusion_models` is mapped onto the `models/` folder; either name would be a cycle.
+  assert not _names("jaxfusion_models", imports) and not _names("models", imports)
+
+
+@pytest.mark.parametrize("path", sorted(MODELS.glob("*.py")), ids=lambda p: p.name)
+def test_networks_import_the_library_only(path):
+  imports = _imports(path)
+  assert not _names("jaxfusion.lab", imports), _names("jaxfusion.lab", imports)
+
+
+def test_the_scan_sees_function_level_and_relative_imports(tmp_path):
+  # The guard above must catch an import hidden in a function, or it could not fail.
+  probe = tmp_path / "probe.py"
+  probe.write_text("def f():\n  from jaxfusion.lab import cli\n  from . import tune\n")
+  imports = _imports(probe, package="jaxfusion")
+  assert "jaxfusion.lab" in imports and "jaxfusion.tune" in imports
+
+
+def test_import_jaxfusion_loads_no_command_line_nor_heavy_module():
+  code = ("import sys, jaxfusion\n"
+          "print('\\n'.join(sorted(m for m in sys.modules)))")
+  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       check=True, timeout=300, cwd=ROOT).stdout.split()
+  loaded = [m for m in out if any(m == h or m.startswith(h + ".") for h in HEAVY)]
+  assert not loaded, loaded
+  assert "jaxfusion.datasets" in out and "jaxfusion.tune" in out   # the library itself is there
