@@ -9,8 +9,9 @@ pixels. Calibration, for the MC mean and for the dropout-off pass: expected cali
 (ECE, 15 bins of the max-probability), the mean max-probability on wrong and on right pixels,
 and the share of errors made with max-probability above 0.9; and the quartiles of the robust
 rules' Dirichlet weight α = −log(var of the predicted class) on right and on wrong pixels.
-mIoU is given pooled over all pixels (`*_miou`) and as the mean of per-frame mIoUs
-(`*_frame_miou`). `--timing` also measures the cost of MC sampling per frame for several M.
+mIoU is given pooled over all pixels (`*_miou`, `metrics.pixel_miou`) and as the per-frame
+mIoU (`*_frame_miou`, `metrics.per_frame_miou`: the mean of each frame's own mIoU; not the
+map mIoU of the fusion results). `--timing` also measures the cost of MC sampling per frame for several M.
 
 Shape legend: N images, M Monte-Carlo samples, H×W pixels, K classes.
 """
@@ -53,7 +54,7 @@ def segmentation_metrics(conf: np.ndarray) -> dict[str, Any]:
   conf = np.asarray(conf, np.float64)
   iou = metrics.iou_from_confusion(conf)
   return {"pixel_accuracy": float(np.trace(conf) / max(conf.sum(), 1)),
-          "miou": float(np.nanmean(iou)) if np.isfinite(iou).any() else float("nan"),
+          "miou": metrics.pixel_miou(conf),
           "iou": [None if np.isnan(v) else float(v) for v in iou]}
 
 
@@ -70,53 +71,10 @@ def load_with_training_size(path, height=None, width=None):
   return model, height or data.get("height", 96), width or data.get("width", 128)
 
 
-def auroc(scores: np.ndarray, positives: np.ndarray) -> float:
-  """Area under the ROC curve of `scores` for detecting `positives` (ties count half).
-
-  Equals the probability that a random positive scores higher than a random negative
-  (Mann-Whitney U / (n_pos n_neg)). NaN when either class is empty.
-
-  Args:
-    scores: float scores of any shape.
-    positives: bool of the same shape.
-  """
-  scores = np.asarray(scores, np.float64).ravel()
-  positives = np.asarray(positives, bool).ravel()
-  n_pos = int(positives.sum())
-  n_neg = positives.size - n_pos
-  if n_pos == 0 or n_neg == 0:
-    return float("nan")
-  _, inverse, counts = np.unique(scores, return_inverse=True, return_counts=True)
-  average_rank = np.cumsum(counts) - (counts - 1) / 2.0  # 1-based, ties averaged.
-  rank_sum = average_rank[inverse][positives].sum()
-  return float((rank_sum - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
-
-
 def entropy(probs: np.ndarray) -> np.ndarray:
   """Shannon entropy (nats) over the last axis."""
   probs = np.asarray(probs, np.float64)
   return -np.sum(probs * np.log(np.clip(probs, 1e-12, 1.0)), axis=-1)
-
-
-def frame_miou(pred: np.ndarray, labels: np.ndarray, num_classes: int) -> float:
-  """Mean over frames of each frame's own mIoU (classes present in its truth or prediction).
-
-  Args:
-    pred: `(N, H, W)` int predictions.
-    labels: `(N, H, W)` int ground truth; values outside `[0, K)` are ignored.
-    num_classes: K.
-
-  Returns:
-    The average per-frame mIoU; NaN when no frame has a labelled pixel.
-  """
-  pred, labels = np.asarray(pred), np.asarray(labels)
-  if pred.shape != labels.shape or pred.ndim != 3:
-    raise ValueError(f"frame_miou expects (N, H, W) pred and labels; got {pred.shape}, "
-                     f"{labels.shape}")
-  values = [segmentation_metrics(confusion_matrix(p, y, num_classes))["miou"]
-            for p, y in zip(pred, labels)]
-  values = [v for v in values if np.isfinite(v)]
-  return float(np.mean(values)) if values else float("nan")
 
 
 def expected_calibration_error(probs: np.ndarray, labels: np.ndarray, *,
@@ -266,9 +224,9 @@ def uncertainty_report(mean: np.ndarray, var: np.ndarray, labels: np.ndarray
   var_pred = np.take_along_axis(var, pred[..., None], axis=-1)[..., 0]
   return {
       "error_rate": float(wrong.mean()),
-      "auroc_var_sum": auroc(var_sum, wrong),
-      "auroc_var_pred": auroc(var_pred, wrong),
-      "auroc_entropy": auroc(entropy(mean), wrong),
+      "auroc_var_sum": metrics.auroc(var_sum, wrong),
+      "auroc_var_pred": metrics.auroc(var_pred, wrong),
+      "auroc_entropy": metrics.auroc(entropy(mean), wrong),
       "mean_var_sum_wrong": float(var_sum[wrong].mean()) if wrong.any() else float("nan"),
       "mean_var_sum_right": float(var_sum[~wrong].mean()) if (~wrong).any() else float("nan"),
   }
@@ -307,12 +265,12 @@ def evaluate_arrays(graphdef: nnx.GraphDef, params: nnx.State, images: np.ndarra
       "num_samples": num_samples,
       "det_pixel_accuracy": det["pixel_accuracy"], "det_miou": det["miou"],
       "mc_pixel_accuracy": mc["pixel_accuracy"], "mc_miou": mc["miou"],
-      "det_frame_miou": frame_miou(preds["det_probs"].argmax(-1), labels, num_classes),
-      "mc_frame_miou": frame_miou(preds["mc_mean"].argmax(-1), labels, num_classes),
+      "det_frame_miou": metrics.per_frame_miou(preds["det_probs"].argmax(-1), labels, num_classes),
+      "mc_frame_miou": metrics.per_frame_miou(preds["mc_mean"].argmax(-1), labels, num_classes),
       **unc,
-      "det_auroc_entropy": auroc(entropy(preds["det_probs"][valid]), det_wrong),
+      "det_auroc_entropy": metrics.auroc(entropy(preds["det_probs"][valid]), det_wrong),
       # The same MC variance as a detector of the dropout-off pass's errors.
-      "det_auroc_var_sum": auroc(preds["mc_var"][valid].sum(-1), det_wrong),
+      "det_auroc_var_sum": metrics.auroc(preds["mc_var"][valid].sum(-1), det_wrong),
       **prefixed("mc", calibration_report(preds["mc_mean"], labels)),
       **prefixed("det", calibration_report(preds["det_probs"], labels)),
       **alpha_report(preds["mc_mean"], preds["mc_var"], labels),
@@ -368,7 +326,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   p.add_argument("--cache", default=None, help="folder to cache rendered views in")
   p.add_argument("--sensing", choices=("on", "off"), default="on",
                  help="render the views with the embedded world's view-dependent camera model "
-                      "(its default) or without it (the renderer before datasets ecb82f6)")
+                      "(its default) or with the plain sensor model (SensingConfig.off())")
   args = p.parse_args(argv)
 
   from . import train  # The data helpers live with the training command.

@@ -151,8 +151,8 @@ class Config:
   sensing: str = option(
       "off", choices=("on", "off"), record="record.data.sensing", absent="off",
       help="render the views with the embedded world's view-dependent camera model "
-           "(sample_views' default since datasets ecb82f6) or without it (the renderer the "
-           "shipped weights were trained with)")
+           "(sample_views' default) or with the plain sensor model (SensingConfig.off(), "
+           "what the shipped weights were trained with)")
   eval_samples: int = option(16, record="record.eval_num_samples", absent=16,
                              help="M for the MC evaluation")
   train: TrainConfig = section(TrainConfig, record="record.train_config")

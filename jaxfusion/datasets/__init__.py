@@ -24,7 +24,7 @@ from jaxfusion.datasets.ground_truth import gt_voxel_labels
 from jaxfusion.datasets.middlebury import middlebury_frame
 from jaxfusion.datasets.preview import render_preview
 from jaxfusion.datasets.scannet import load_scannet
-from jaxfusion.datasets.sensing import SensingConfig
+from jaxfusion.datasets.camera_model import SensingConfig
 from jaxfusion.datasets.sequence import RGBDFrame
 from jaxfusion.datasets.sequence import RGBDSequence
 from jaxfusion.datasets.sequence import load_sequence

@@ -10,7 +10,7 @@ trained on different data) is replaced by procedural rooms rendered with a JAX r
 * `make_scene` / `render` — the scene and the single-frame renderer behind them.
 
 With `realism` (the default of the sequences and views), colour goes through the camera model
-of `sensing.SensingConfig` — auto-exposure and white-balance drift, motion blur, defocus, glossy
+of `camera_model.SensingConfig` — auto-exposure and white-balance drift, motion blur, defocus, glossy
 highlights, vignetting, per-frame sensor noise — in both domains; `SensingConfig.off()` gives
 the plain sensor model (blur, vignetting and noise alike in every frame). Depth keeps its own
 sensor model and the labels stay exact either way.
@@ -28,11 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfusion.camera import Camera
-from jaxfusion.datasets import appearance, raycast, scene, sensor, trajectories
-from jaxfusion.datasets import sensing as camera_model
+from jaxfusion.datasets import appearance, camera_model, raycast, scene, sensor_noise, trajectories
 from jaxfusion.datasets.classes import BACKGROUND, CLASS_NAMES
 from jaxfusion.datasets.primitives import Primitives
-from jaxfusion.datasets.sensing import CameraState, SensingConfig
+from jaxfusion.datasets.camera_model import CameraState, SensingConfig
 from jaxfusion.datasets.sequence import RGBDFrame, RGBDSequence
 
 ENVIRONMENTS = scene.ENVIRONMENTS
@@ -189,8 +188,9 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
     pack_step: the per-kind primitive tables are padded to a multiple of this (coarser
       padding: fewer distinct shapes across scenes, hence fewer compilations).
     sensing: the camera model used with `realism` (default `SensingConfig()`;
-      `SensingConfig.off()`: the plain blur, vignetting and noise of `sensor.noisy_image`).
-    state: this frame's `sensing.CameraState` (exposure, white balance, noise level, motion
+      `SensingConfig.off()`: the plain blur, vignetting and noise of
+      `sensor_noise.noisy_image`).
+    state: this frame's `camera_model.CameraState` (exposure, white balance, noise level, motion
       during the exposure); default: a still camera whose auto-exposure has settled on this
       frame, neutral white balance, nominal noise. Sequences pass the states of their camera
       path (see `make_sequence`).
@@ -215,7 +215,7 @@ def _finish(synthetic_scene: SyntheticScene, packed, hits, T, camera: Camera, *,
   if realism and config.enabled:
     key = jax.random.PRNGKey(0) if key is None else key
     k_depth, k_image = jax.random.split(key)
-    depth = sensor.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
+    depth = sensor_noise.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
     radiance = _scene_radiance(synthetic_scene, packed, hits, T, camera, config)
     if state is None:
       state = camera_model.still_state(_converged_exposure(radiance, config))
@@ -227,8 +227,8 @@ def _finish(synthetic_scene: SyntheticScene, packed, hits, T, camera: Camera, *,
     if realism:
       key = jax.random.PRNGKey(0) if key is None else key
       k_depth, k_image = jax.random.split(key)
-      depth = sensor.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
-      rgb = sensor.noisy_image(k_image, rgb)
+      depth = sensor_noise.noisy_depth(k_depth, depth, hits.normal, hits.view_dir)
+      rgb = sensor_noise.noisy_image(k_image, rgb)
   frame = RGBDFrame(rgb=_to_uint8(rgb), depth=np.asarray(depth, np.float32), T_world_cam=T,
                     camera=camera, labels=np.asarray(hits.label, np.int32),
                     instances=np.asarray(hits.instance, np.int32))
@@ -360,7 +360,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
   same camera model as the sequences; as the views are independent, each draws its camera
   settings from the model's stationary spread: exposure from a settled AE with a drifted
   set-point, white balance and noise level from their drift distributions, and motion blur
-  from a random hand-held velocity (`sensing.random_velocity`).
+  from a random hand-held velocity (`camera_model.random_velocity`).
 
   Args:
     domain: "train" or "test" appearance.
@@ -371,7 +371,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
     shift: strength of the "test" domain gap in [0, 1].
     views_per_scene: views rendered from each random room.
     sensing: the camera model (default `SensingConfig()`; `SensingConfig.off()`: the plain
-      blur and noise of `sensor.noisy_image`). The rooms and poses do not depend on it.
+      blur and noise of `sensor_noise.noisy_image`). The rooms and poses do not depend on it.
 
   Returns:
     `(rgb (n, H, W, 3) uint8, labels (n, H, W) int32)`; colour has the camera's effects,
@@ -408,7 +408,7 @@ def sample_views(domain: str, num_images: int, *, height: int, width: int, seed:
                                          _traced(config))
     else:
       clean = _to_uint8(_shade(packed, hits, world.lighting))
-      rgb = sensor.noisy_image(key, jnp.asarray(clean, jnp.float32) / 255.0)
+      rgb = sensor_noise.noisy_image(key, jnp.asarray(clean, jnp.float32) / 255.0)
     rgbs[i] = _to_uint8(rgb)
     labels[i] = np.asarray(hits.label, np.int32)
   return rgbs, labels

@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from jaxfusion.datasets import preview, sensing, synthetic
+from jaxfusion.datasets import camera_model, preview, synthetic
 from jaxfusion.datasets.classes import palette
-from jaxfusion.datasets.sensing import SensingConfig
+from jaxfusion.datasets.camera_model import SensingConfig
 from jaxfusion.datasets.sequence import RGBDSequence
 from jaxfusion.lab import flags
 
@@ -50,11 +50,11 @@ def camera_effects(seq: RGBDSequence, config: SensingConfig) -> dict:
   motion, defocus = [], []
   for t in range(len(seq)):
     other = seq.T_world_cam[t - 1] if t > 0 else seq.T_world_cam[min(1, len(seq) - 1)]
-    v, w = sensing.velocity(other, seq.T_world_cam[t], dt)
-    path = sensing.motion_from_velocity(v, w, states["exposure_time_s"][t])
-    du, dv = sensing.motion_flow(seq.depth[t], seq.camera, path)
+    v, w = camera_model.velocity(other, seq.T_world_cam[t], dt)
+    path = camera_model.motion_from_velocity(v, w, states["exposure_time_s"][t])
+    du, dv = camera_model.motion_flow(seq.depth[t], seq.camera, path)
     motion.append(float(np.median(np.hypot(du[-1], dv[-1]))))
-    defocus.append(float(np.median(sensing.defocus_sigma(
+    defocus.append(float(np.median(camera_model.defocus_sigma(
         seq.depth[t], seq.camera.fx, aperture=config.aperture,
         focus_distance=config.focus_distance, optical_blur=config.optical_blur))))
   return {"motion_blur_px": np.array(motion), "defocus_sigma_px": np.array(defocus),

@@ -1,6 +1,7 @@
-"""PNG figures people look at: the paper's Fig. 2 outlier example (computed by the engine),
-per-class IoU bars per method, maps side by side (the paper's Fig. 5), and the study's curves
-over the domain shift with interval bands, voxel-headroom bars and α histograms."""
+"""Every matplotlib figure of the lab, written as PNG: the paper's Fig. 2 outlier example
+(computed by the engine), per-class IoU bars per method, maps side by side (the paper's Fig. 5),
+the study's curves over the domain shift with interval bands, voxel-headroom bars and α
+histograms, the tuning commands' β plots and the simulated front end's heatmap."""
 
 from typing import Optional, Sequence
 
@@ -17,9 +18,11 @@ def _pyplot():
   return plt
 
 
-def _save(fig, path):
+def _save(fig, path, *, dpi: int = 120, tight: bool = True):
+  """Writes `fig` as a PNG (atomically) and closes it."""
   plt = _pyplot()
-  io.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png"))
+  extra = {"bbox_inches": "tight"} if tight else {}
+  io.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png", **extra))
   plt.close(fig)
 
 
@@ -254,3 +257,127 @@ def alpha_histograms(path: str, shifts, bin_edges, right, wrong) -> None:
     ax.legend(fontsize=7)
   axes[0][0].set_ylabel("density")
   _save(fig, path)
+
+
+def miou_vs_beta(path: str, betas, miou, *, title: str) -> None:
+  """`jaxfusion sweep --plot`'s PNG: mIoU (%) against β."""
+  plt = _pyplot()
+  fig, ax = plt.subplots(figsize=(5, 3.2))
+  ax.plot(betas, 100 * np.asarray(miou), "o-", ms=3)
+  ax.set_xlabel("β")
+  ax.set_ylabel("mIoU (%)")
+  ax.set_title(title)
+  ax.grid(alpha=0.3)
+  fig.tight_layout()
+  _save(fig, path, tight=False)
+
+
+def objective_comparison(path: str, result: dict) -> None:
+  """`jaxfusion tune-compare`'s PNG: mIoU and the two surrogates (rescaled to [0, 1], higher is better) against β on the
+  calibration and held-out batches, with each objective's β*."""
+  plt = _pyplot()
+  betas = result["betas"]
+  colors = {"soft_iou": "tab:orange", "cross_entropy": "tab:green"}
+  fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharex=True)
+  for ax, name in zip(axes, ("calibration", "held_out")):
+    g = result["grid"][name]
+    ax.plot(betas, 100 * g["miou"], "o-", ms=3, color="tab:blue", label="mIoU")
+    ax.set_ylabel("mIoU (%)")
+    ax.set_xlabel("β")
+    ax.set_title(name.replace("_", "-"))
+    twin = ax.twinx()
+    for obj, color in colors.items():
+      loss = np.asarray(g[obj], np.float64)
+      span = np.nanmax(loss) - np.nanmin(loss)
+      score = (np.nanmax(loss) - loss) / span if span > 0 else np.zeros_like(loss)
+      twin.plot(betas, score, "--", color=color, label=f"−{obj} (rescaled)")
+      ax.axvline(result["objectives"][obj]["beta_star"], color=color, lw=1)
+    twin.set_ylim(-0.05, 1.05)
+    twin.set_yticks([])
+    if name == "held_out":
+      lines = ax.get_legend_handles_labels()
+      more = twin.get_legend_handles_labels()
+      ax.legend(lines[0] + more[0], lines[1] + more[1], fontsize=7, loc="lower left")
+  fig.suptitle("surrogate optima (vertical lines: β* by gradient on calibration)", fontsize=9)
+  fig.tight_layout()
+  _save(fig, path, tight=False)
+
+
+def per_class_beta(path: str, result: dict, class_names: Sequence[str]) -> None:
+  """`jaxfusion tune-protocol`'s PNG: the per-class β* as bars, the scalar β* and the baseline as lines."""
+  plt = _pyplot()
+  methods = result["methods"]
+  per_class = methods["per-class β*"]["beta"]
+  fig, ax = plt.subplots(figsize=(6, 3.2))
+  x = np.arange(len(class_names))
+  ax.bar(x, per_class, color="tab:orange", label="per-class β*")
+  ax.axhline(methods["scalar β*"]["beta"], color="tab:green", ls="--",
+             label=f"scalar β* = {methods['scalar β*']['beta']:.3f}")
+  ax.axhline(methods[result["baseline"]]["beta"], color="grey", ls=":",
+             label=result["baseline"])
+  ax.set_xticks(x)
+  ax.set_xticklabels(class_names, rotation=30, ha="right")
+  ax.set_ylabel("β")
+  ax.set_ylim(0, 1)
+  ax.set_title(f"{result['rule']}: β tuned by {result['objective']} on "
+               f"{len(result['calibration'])} calibration sequences", fontsize=9)
+  ax.legend(fontsize=7)
+  fig.tight_layout()
+  _save(fig, path, tight=False)
+
+
+def _param_label(param: str) -> str:
+  return {"error_rate": "error rate e", "error_confidence": "error confidence c_e",
+          "confidence": "confidence c", "variance_separation": "variance separation s (nats)",
+          "cross_view_correlation": "cross-view correlation ρ",
+          "alpha_right": "α on right pixels", "alpha_noise": "α scatter τ (nats)",
+          "patch_size": "patch size ℓ (m)"}[param]
+
+
+def simulation_heatmap(path: str, result: dict) -> None:
+  """`jaxfusion simulate-sweep`'s 2×2 PNG: mIoU of Bayes and D+R, D+R − Bayes, oracle − Bayes (mean over draws,
+  ± the standard deviation over draws in the difference panels when there are several)."""
+  plt = _pyplot()
+  rules = result["rules"]
+  miou = 100.0 * np.asarray(result["miou"])           # (Y, X, D, R)
+  bayes, dr, oracle = (miou[..., rules.index(n)] for n in ("Bayesian", "D+R", "Oracle"))
+  panels = [("Bayesian mIoU (%)", bayes, "viridis", None),
+            ("D+R mIoU (%)", dr, "viridis", None),
+            ("D+R − Bayesian (mIoU points)", dr - bayes, "RdBu", "diff"),
+            ("Oracle − Bayesian: headroom (mIoU points)", oracle - bayes, "RdBu", "diff")]
+  x, y = result["x"], result["y"]
+  fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+  vmin = min(np.nanmin(bayes.mean(-1)), np.nanmin(dr.mean(-1)))
+  vmax = max(np.nanmax(bayes.mean(-1)), np.nanmax(dr.mean(-1)))
+  limit = max(np.nanmax(np.abs((dr - bayes).mean(-1))),
+              np.nanmax(np.abs((oracle - bayes).mean(-1))), 0.5)
+  for ax, (title, values, cmap, kind) in zip(axes.flat, panels):
+    mean = values.mean(-1)
+    std = values.std(-1)
+    if kind == "diff":
+      im = ax.imshow(mean, origin="lower", cmap=cmap, vmin=-limit, vmax=limit, aspect="auto")
+    else:
+      im = ax.imshow(mean, origin="lower", cmap=cmap, vmin=vmin, vmax=vmax, aspect="auto")
+    for yi in range(len(y)):
+      for xi in range(len(x)):
+        text = f"{mean[yi, xi]:+.1f}" if kind else f"{mean[yi, xi]:.1f}"
+        if kind and values.shape[-1] > 1:
+          text += f"\n±{std[yi, xi]:.1f}"
+        shade = im.norm(mean[yi, xi])        # white text on the dark ends of the colour map
+        dark = shade < 0.35 if kind is None else abs(shade - 0.5) > 0.35
+        ax.text(xi, yi, text, ha="center", va="center", fontsize=7,
+                color="white" if dark else "black")
+    ax.set_xticks(range(len(x)), [f"{v:g}" for v in x])
+    ax.set_yticks(range(len(y)), [f"{v:g}" for v in y])
+    ax.set_xlabel(_param_label(result["x_param"]))
+    ax.set_ylabel(_param_label(result["y_param"]))
+    ax.set_title(title, fontsize=10)
+    fig.colorbar(im, ax=ax, shrink=0.8)
+  fixed = ", ".join(f"{k} = {v:g}" for k, v in result["base"].items())
+  spread = " (± s.d. over draws)" if result["num_draws"] > 1 else ""
+  fig.suptitle(f"Simulated front end: {result['regions']} regions; {fixed}\n"
+               f"{', '.join(result['sequences'])} × {result['num_draws']} draw(s){spread}, "
+               f"β = {result['beta']:g}", fontsize=9)
+  fig.tight_layout()
+
+  _save(fig, path, dpi=110, tight=False)

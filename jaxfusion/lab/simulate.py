@@ -9,10 +9,7 @@ Shape legend: T frames, H×W pixels, K classes, X×Y sweep cells, D draws, R rul
 """
 
 import argparse
-import csv
 import functools
-import io as _io
-import json
 import os
 import time
 from typing import Optional, Sequence
@@ -24,12 +21,13 @@ import numpy as np
 from jaxfusion import batch
 from jaxfusion import camera as camera_lib
 from jaxfusion import fusion
-from jaxfusion import io
 from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
 from jaxfusion import tune
+from jaxfusion.lab import figures
 from jaxfusion.lab import flags
+from jaxfusion.lab import reports
 from jaxfusion.simulation import REGIONS
 from jaxfusion.simulation import SWEEP_PARAMS
 from jaxfusion.simulation import ErrorModel
@@ -41,8 +39,9 @@ from jaxfusion.simulation import simulate_frame
 # The oracle keeps this weight on a wrong pixel's prediction (the rest is uniform): a voxel keeps
 # any right evidence and falls back to its wrong votes only when it has no right one.
 ORACLE_WEIGHT = 1e-5
-# The rules of a sweep, in the order of its outputs (Bayes ≡ R with β = 0, D ≡ D+R with β = 0).
-SWEEP_RULES = ("Bayes", "R", "D", "D+R", "oracle")
+# The rules of a sweep by their display names (`rules.display_name`, the study's "Oracle"), in
+# the order of its outputs (Bayesian ≡ R with β = 0, D ≡ D+R with β = 0).
+SWEEP_RULES = ("Bayesian", "R", "D", "D+R", "Oracle")
 
 
 # --- the sweep -----------------------------------------------------------------------------------
@@ -214,70 +213,7 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
           "confusion": cms, "seconds": seconds, **realised}
 
 
-# --- figure and tables ---------------------------------------------------------------------------
-def _label(param: str) -> str:
-  return {"error_rate": "error rate e", "error_confidence": "error confidence c_e",
-          "confidence": "confidence c", "variance_separation": "variance separation s (nats)",
-          "cross_view_correlation": "cross-view correlation ρ",
-          "alpha_right": "α on right pixels", "alpha_noise": "α scatter τ (nats)",
-          "patch_size": "patch size ℓ (m)"}[param]
-
-
-def heatmap_figure(path: str, result: dict) -> None:
-  """Writes a 2×2 PNG: mIoU of Bayes and D+R, D+R − Bayes, oracle − Bayes (mean over draws,
-  ± the standard deviation over draws in the difference panels when there are several)."""
-  import matplotlib  # pylint: disable=import-outside-toplevel
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
-  rules = result["rules"]
-  miou = 100.0 * np.asarray(result["miou"])           # (Y, X, D, R)
-  bayes, dr, oracle = (miou[..., rules.index(n)] for n in ("Bayes", "D+R", "oracle"))
-  panels = [("Bayes mIoU (%)", bayes, "viridis", None),
-            ("D+R mIoU (%)", dr, "viridis", None),
-            ("D+R − Bayes (mIoU points)", dr - bayes, "RdBu", "diff"),
-            ("oracle − Bayes: headroom (mIoU points)", oracle - bayes, "RdBu", "diff")]
-  x, y = result["x"], result["y"]
-  fig, axes = plt.subplots(2, 2, figsize=(10, 8))
-  vmin = min(np.nanmin(bayes.mean(-1)), np.nanmin(dr.mean(-1)))
-  vmax = max(np.nanmax(bayes.mean(-1)), np.nanmax(dr.mean(-1)))
-  limit = max(np.nanmax(np.abs((dr - bayes).mean(-1))),
-              np.nanmax(np.abs((oracle - bayes).mean(-1))), 0.5)
-  for ax, (title, values, cmap, kind) in zip(axes.flat, panels):
-    mean = values.mean(-1)
-    std = values.std(-1)
-    if kind == "diff":
-      im = ax.imshow(mean, origin="lower", cmap=cmap, vmin=-limit, vmax=limit, aspect="auto")
-    else:
-      im = ax.imshow(mean, origin="lower", cmap=cmap, vmin=vmin, vmax=vmax, aspect="auto")
-    for yi in range(len(y)):
-      for xi in range(len(x)):
-        text = f"{mean[yi, xi]:+.1f}" if kind else f"{mean[yi, xi]:.1f}"
-        if kind and values.shape[-1] > 1:
-          text += f"\n±{std[yi, xi]:.1f}"
-        shade = im.norm(mean[yi, xi])        # white text on the dark ends of the colour map
-        dark = shade < 0.35 if kind is None else abs(shade - 0.5) > 0.35
-        ax.text(xi, yi, text, ha="center", va="center", fontsize=7,
-                color="white" if dark else "black")
-    ax.set_xticks(range(len(x)), [f"{v:g}" for v in x])
-    ax.set_yticks(range(len(y)), [f"{v:g}" for v in y])
-    ax.set_xlabel(_label(result["x_param"]))
-    ax.set_ylabel(_label(result["y_param"]))
-    ax.set_title(title, fontsize=10)
-    fig.colorbar(im, ax=ax, shrink=0.8)
-  fixed = ", ".join(f"{k} = {v:g}" for k, v in result["base"].items())
-  spread = " (± s.d. over draws)" if result["num_draws"] > 1 else ""
-  fig.suptitle(f"Simulated front end: {result['regions']} regions; {fixed}\n"
-               f"{', '.join(result['sequences'])} × {result['num_draws']} draw(s){spread}, "
-               f"β = {result['beta']:g}", fontsize=9)
-  fig.tight_layout()
-
-  def write(tmp):
-    fig.savefig(tmp, dpi=110, format="png")
-
-  io.atomic_write(path, write)
-  plt.close(fig)
-
-
+# --- tables --------------------------------------------------------------------------------------
 def _rows(result: dict) -> list:
   rows = []
   miou, acc = result["miou"], result["accuracy"]
@@ -291,7 +227,7 @@ def _rows(result: dict) -> list:
       row["miou_DR_minus_Bayes"] = float(np.mean(diff))
       row["miou_DR_minus_Bayes_std"] = float(np.std(diff))
       row["miou_oracle_minus_Bayes"] = float(np.mean(
-          miou[yi, xi, :, result["rules"].index("oracle")] - miou[yi, xi, :, 0]))
+          miou[yi, xi, :, result["rules"].index("Oracle")] - miou[yi, xi, :, 0]))
       for k in ("error_rate", "alpha_separation", "auroc"):
         row[f"realised_{k}"] = float(result[k][yi, xi])
       rows.append(row)
@@ -303,20 +239,15 @@ def write_results(out_dir: str, result: dict) -> list:
   os.makedirs(out_dir, exist_ok=True)
   rows = _rows(result)
   paths = [os.path.join(out_dir, n) for n in ("heatmap.png", "results.csv", "results.json")]
-  heatmap_figure(paths[0], result)
-  buf = _io.StringIO()
-  writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
-  writer.writeheader()
-  for row in rows:
-    writer.writerow({k: f"{v:.5g}" for k, v in row.items()})
-  io.atomic_write(paths[1], lambda tmp: open(tmp, "w", encoding="utf-8").write(buf.getvalue()))
+  figures.simulation_heatmap(paths[0], result)
+  reports.write_csv(paths[1], ([f"{v:.5g}" for v in row.values()] for row in rows),
+                    header=list(rows[0]))
   payload = {k: result[k] for k in ("rules", "x_param", "y_param", "x", "y", "base", "regions",
                                     "beta", "num_draws", "sequences", "seconds")}
   payload["settings"] = result.get("settings", {})
   payload["cells"] = rows
   payload["miou"] = np.asarray(result["miou"]).tolist()
-  io.atomic_write(paths[2], lambda tmp: open(tmp, "w", encoding="utf-8").write(
-      json.dumps(payload, indent=1)))
+  reports.write_json(paths[2], payload)
   return paths
 
 
@@ -416,12 +347,12 @@ def main(args: argparse.Namespace) -> int:
   paths = write_results(args.out, result)
   bayes = result["miou"][..., 0].mean(-1)
   gain = (result["miou"][..., SWEEP_RULES.index("D+R")] - result["miou"][..., 0]).mean(-1)
-  head = (result["miou"][..., SWEEP_RULES.index("oracle")] - result["miou"][..., 0]).mean(-1)
+  head = (result["miou"][..., SWEEP_RULES.index("Oracle")] - result["miou"][..., 0]).mean(-1)
   print(f"{len(specs)} sequence(s) × {pick('draws')} draw(s), {len(result['y'])}×"
         f"{len(result['x'])} cells: {result['seconds']:.1f} s fusing (+ {render_seconds:.1f} s "
         "rendering)")
   print(f"rows: {args.y}; columns: {args.x}")
-  print("  Bayes mIoU / D+R − Bayes / oracle − Bayes (mIoU points):")
+  print("  Bayesian mIoU / D+R − Bayesian / Oracle − Bayesian (mIoU points):")
   for yi, yv in enumerate(result["y"]):
     cells = "  ".join(f"{100 * bayes[yi, xi]:5.1f} {100 * gain[yi, xi]:+5.1f} "
                       f"{100 * head[yi, xi]:+5.1f}" for xi in range(len(result["x"])))

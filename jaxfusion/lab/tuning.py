@@ -9,7 +9,6 @@ Shape legend: R rules, B sequences, T frames, H×W pixels, K classes, N GT voxel
 """
 
 import argparse
-import json
 import math
 import time
 from typing import Optional, Sequence
@@ -21,8 +20,10 @@ from jaxfusion import fusion
 from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
+from jaxfusion.lab import figures
 from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
+from jaxfusion.lab import reports
 from jaxfusion.lab import stats
 from jaxfusion.tune import DEFAULT_OBJECTIVE
 from jaxfusion.tune import OBJECTIVES
@@ -243,41 +244,6 @@ def format_comparison(result: dict) -> str:
   return "\n".join(lines)
 
 
-def plot_comparison(path: str, result: dict) -> None:
-  """PNG: mIoU and the two surrogates (rescaled to [0, 1], higher is better) against β on the
-  calibration and held-out batches, with each objective's β*."""
-  import matplotlib  # pylint: disable=import-outside-toplevel
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
-  from jaxfusion import io  # pylint: disable=import-outside-toplevel
-  betas = result["betas"]
-  colors = {"soft_iou": "tab:orange", "cross_entropy": "tab:green"}
-  fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharex=True)
-  for ax, name in zip(axes, ("calibration", "held_out")):
-    g = result["grid"][name]
-    ax.plot(betas, 100 * g["miou"], "o-", ms=3, color="tab:blue", label="mIoU")
-    ax.set_ylabel("mIoU (%)")
-    ax.set_xlabel("β")
-    ax.set_title(name.replace("_", "-"))
-    twin = ax.twinx()
-    for obj, color in colors.items():
-      loss = np.asarray(g[obj], np.float64)
-      span = np.nanmax(loss) - np.nanmin(loss)
-      score = (np.nanmax(loss) - loss) / span if span > 0 else np.zeros_like(loss)
-      twin.plot(betas, score, "--", color=color, label=f"−{obj} (rescaled)")
-      ax.axvline(result["objectives"][obj]["beta_star"], color=color, lw=1)
-    twin.set_ylim(-0.05, 1.05)
-    twin.set_yticks([])
-    if name == "held_out":
-      lines = ax.get_legend_handles_labels()
-      more = twin.get_legend_handles_labels()
-      ax.legend(lines[0] + more[0], lines[1] + more[1], fontsize=7, loc="lower left")
-  fig.suptitle("surrogate optima (vertical lines: β* by gradient on calibration)", fontsize=9)
-  fig.tight_layout()
-  io.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
-  plt.close(fig)
-
-
 # --- the protocol: tune on calibration seeds, judge on held-out seeds ----------------------------
 def tune_protocol(calibration: dict, held_out: dict, *, rule: str = "D+R",
                   objective: str = DEFAULT_OBJECTIVE, baseline_beta: float = 0.3,
@@ -388,47 +354,6 @@ def format_protocol(result: dict, class_names: Sequence[str]) -> str:
   return "\n".join(lines)
 
 
-def plot_per_class_beta(path: str, result: dict, class_names: Sequence[str]) -> None:
-  """PNG: the per-class β* as bars, the scalar β* and the baseline as lines."""
-  import matplotlib  # pylint: disable=import-outside-toplevel
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
-  from jaxfusion import io  # pylint: disable=import-outside-toplevel
-  methods = result["methods"]
-  per_class = methods["per-class β*"]["beta"]
-  fig, ax = plt.subplots(figsize=(6, 3.2))
-  x = np.arange(len(class_names))
-  ax.bar(x, per_class, color="tab:orange", label="per-class β*")
-  ax.axhline(methods["scalar β*"]["beta"], color="tab:green", ls="--",
-             label=f"scalar β* = {methods['scalar β*']['beta']:.3f}")
-  ax.axhline(methods[result["baseline"]]["beta"], color="grey", ls=":",
-             label=result["baseline"])
-  ax.set_xticks(x)
-  ax.set_xticklabels(class_names, rotation=30, ha="right")
-  ax.set_ylabel("β")
-  ax.set_ylim(0, 1)
-  ax.set_title(f"{result['rule']}: β tuned by {result['objective']} on "
-               f"{len(result['calibration'])} calibration sequences", fontsize=9)
-  ax.legend(fontsize=7)
-  fig.tight_layout()
-  io.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
-  plt.close(fig)
-
-
-def _jsonable(x):
-  if isinstance(x, stats.Interval):
-    return {"estimate": x.estimate, "low": x.low, "high": x.high}
-  if isinstance(x, dict):
-    return {k: _jsonable(v) for k, v in x.items()}
-  if isinstance(x, (list, tuple)):
-    return [_jsonable(v) for v in x]
-  if isinstance(x, np.ndarray):
-    return x.tolist()
-  if isinstance(x, (np.floating, np.integer)):
-    return x.item()
-  return x
-
-
 # --- command line --------------------------------------------------------------------------------
 def _add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust rule: R, D "
                    "or D+R", layout_seeds: bool = True) -> None:
@@ -477,19 +402,9 @@ def _mesh(args):
   return None if args.devices in (None, 1) else batch.make_mesh(args.devices)
 
 
-def _write_text(path: str, text: str) -> None:
-  from jaxfusion import io  # pylint: disable=import-outside-toplevel
-
-  def write(tmp):
-    with open(tmp, "w", encoding="utf-8") as f:
-      f.write(text)
-
-  io.atomic_write(path, write)
-
-
 def _write_json(path: Optional[str], payload: dict) -> None:
   if path:
-    _write_text(path, json.dumps(_jsonable(payload), indent=2))
+    reports.write_json(path, payload, indent=2)
     print(f"wrote {path}")
 
 
@@ -621,18 +536,8 @@ def sweep_command(args) -> int:
         f"minima: cross-entropy at β = {out['beta'][int(np.nanargmin(out['loss']))]:.3f}, soft "
         f"IoU at β = {out['beta'][int(np.nanargmin(out['soft_iou_loss']))]:.3f}")
   if args.plot:
-    import matplotlib  # pylint: disable=import-outside-toplevel
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
-    fig, ax = plt.subplots(figsize=(5, 3.2))
-    ax.plot(out["beta"], 100 * out["miou"], "o-", ms=3)
-    ax.set_xlabel("β")
-    ax.set_ylabel("mIoU (%)")
-    ax.set_title(f"{data['name']}, {args.rule} ({args.aggregate})")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(args.plot, dpi=120)
-    plt.close(fig)
+    figures.miou_vs_beta(args.plot, out["beta"], out["miou"],
+                         title=f"{data['name']}, {args.rule} ({args.aggregate})")
     print(f"wrote {args.plot}")
   _write_json(args.json, {
       "sequence": data["name"], "source": data["source"], "rule": args.rule,
@@ -717,8 +622,8 @@ def tune_compare_command(args) -> int:
   table = format_comparison(result)
   print(table)
   os.makedirs(args.out, exist_ok=True)
-  _write_text(os.path.join(args.out, "compare.md"), table + "\n")
-  plot_comparison(os.path.join(args.out, "compare.png"), result)
+  reports.write_text(os.path.join(args.out, "compare.md"), table + "\n")
+  figures.objective_comparison(os.path.join(args.out, "compare.png"), result)
   _write_json(args.json or os.path.join(args.out, "compare.json"), result)
   print(f"wrote {args.out}/compare.md, compare.png")
   return 0
@@ -738,8 +643,8 @@ def tune_protocol_command(args) -> int:
   table = format_protocol(result, names)
   print(table)
   os.makedirs(args.out, exist_ok=True)
-  _write_text(os.path.join(args.out, "protocol.md"), table + "\n")
-  plot_per_class_beta(os.path.join(args.out, "per_class_beta.png"), result, names)
+  reports.write_text(os.path.join(args.out, "protocol.md"), table + "\n")
+  figures.per_class_beta(os.path.join(args.out, "per_class_beta.png"), result, names)
   _write_json(args.json or os.path.join(args.out, "protocol.json"),
               dict(result, class_names=names, settings={
                   "frames": args.frames, "height": args.height, "width": args.width,

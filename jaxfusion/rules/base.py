@@ -59,14 +59,6 @@ def check_aggregate(aggregate: str) -> str:
   return aggregate
 
 
-def as_leaf(value: Any, name: str) -> jax.Array:
-  """A hyperparameter as a float32 scalar leaf (traced values pass through)."""
-  leaf = jnp.asarray(value, jnp.float32)
-  if leaf.ndim != 0:
-    raise ValueError(f"{name} must be a scalar; got shape {leaf.shape} (stack rules to batch)")
-  return leaf
-
-
 def as_class_leaf(value: Any, name: str) -> jax.Array:
   """A hyperparameter that may be given per class: a float32 scalar `()` or vector `(K,)` leaf.
 

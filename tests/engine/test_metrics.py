@@ -45,3 +45,39 @@ def test_evaluate_map_matches_voxels_and_reports_unmatched():
   assert out["matched"] == 2 and out["map_only"] == 1 and out["gt_only"] == 2
   np.testing.assert_array_equal(out["confusion"], [[1, 0], [0, 1]])
   assert out["miou"] == 1.0 and out["accuracy"] == 1.0
+
+
+def test_auroc_matches_pairwise_definition_with_ties():
+  rng = np.random.default_rng(0)
+  scores = rng.integers(0, 5, 200).astype(float)
+  positives = rng.random(200) < 0.3
+  pos, neg = scores[positives], scores[~positives]
+  brute = ((pos[:, None] > neg[None]).sum() + 0.5 * (pos[:, None] == neg[None]).sum()) / (
+      pos.size * neg.size)
+  assert metrics.auroc(scores, positives) == pytest.approx(brute)
+  assert metrics.auroc_of_samples(pos, neg) == pytest.approx(brute)
+  assert metrics.auroc(np.arange(4.0), np.array([0, 0, 1, 1], bool)) == 1.0
+  assert np.isnan(metrics.auroc(np.arange(3.0), np.zeros(3, bool)))
+
+
+def test_auroc_on_a_hand_computed_case_and_from_histograms():
+  # Positives score 0.35 and 0.8, negatives 0.1 and 0.4: 3 of the 4 pairs are ordered.
+  assert metrics.auroc(np.array([0.1, 0.4, 0.35, 0.8]),
+                       np.array([0, 0, 1, 1], bool)) == pytest.approx(0.75)
+  assert metrics.auroc(np.array([0.5, 0.5]), np.array([0, 1], bool)) == pytest.approx(0.5)
+  # The same four scores binned into [0, 0.3), [0.3, 0.6), [0.6, 1): ties within a bin count ½.
+  hist = np.array([[0, 1, 1], [1, 1, 0]])
+  assert metrics.auroc_from_histograms(hist) == pytest.approx((1 * 1.5 + 1 * 2) / 4)
+  assert np.isnan(metrics.auroc_from_histograms(np.zeros((2, 3))))
+
+
+def test_per_frame_miou_averages_each_frames_own_miou():
+  labels = np.array([[[0, 0], [0, 0]], [[0, 0], [1, 1]]])
+  pred = np.zeros_like(labels)
+  # Frame 1: only class 0, perfect (1.0). Frame 2: IoU 0.5 for class 0, 0 for class 1.
+  assert metrics.per_frame_miou(pred, labels, 2) == pytest.approx((1.0 + 0.25) / 2)
+  # The map mIoU of the pooled voxels is another number: over classes present in the GT.
+  cm = metrics.confusion_matrix(labels.ravel(), pred.ravel(), 2)
+  assert metrics.pixel_miou(cm) == pytest.approx((6 / 8 + 0.0) / 2)
+  with pytest.raises(ValueError, match="per_frame_miou"):
+    metrics.per_frame_miou(pred[0], labels[0], 2)

@@ -17,7 +17,7 @@ from jaxfusion import fusion
 from jaxfusion import numerics
 from tests import engine_helpers as h
 from tests.reference import per_class_regularize
-from tests.test_engine_reference import assert_maps_match, fuse_both
+from tests.engine.test_engine_reference import assert_maps_match, fuse_both
 
 # The module (the package re-exports the factory `robust` under the same name).
 robust_lib = importlib.import_module("jaxfusion.rules.robust")

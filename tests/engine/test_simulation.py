@@ -347,7 +347,7 @@ def test_tiny_sweep(tiny_sweep):
   # No errors: every rule maps every voxel right.
   assert np.all(acc[0] >= 0.99), acc[0]
   # Errors cost accuracy, and the oracle is never below Bayes (it keeps all right evidence).
-  bayes, oracle = acc[..., 0], acc[..., simulate.SWEEP_RULES.index("oracle")]
+  bayes, oracle = acc[..., 0], acc[..., simulate.SWEEP_RULES.index("Oracle")]
   assert np.all(acc[1, :, :, 0] < 0.99)
   assert np.all(oracle >= bayes - 1e-12)
   np.testing.assert_allclose(out["error_rate"][0], 0.0)

@@ -17,7 +17,7 @@ from jaxfusion.datasets.classes import CHAIR, PLANT, TV   # noqa: E402
 from jaxfusion.lab.viewer import browser   # noqa: E402
 from jaxfusion.lab.viewer import scene_data as sd   # noqa: E402
 from jaxfusion.lab.viewer import server   # noqa: E402
-from tests.test_viewer_server import save_floor_maps   # noqa: E402
+from tests.lab.test_viewer_server import save_floor_maps   # noqa: E402
 
 WIDTH, HEIGHT = 1280, 800
 COLORS = np.asarray(datasets.CLASS_COLORS, np.int64)

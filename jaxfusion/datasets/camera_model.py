@@ -36,12 +36,12 @@ from the next, each with a physical model and a documented parameter in `Sensing
   per-frame factor `exp(noise_jitter · N(0, 1))` (sensor temperature, ISP denoising strength);
   the result is white-balanced, clipped and quantised to 8 bits by the renderer.
 
-The effects act on colour only; depth keeps its own sensor model (`sensor.noisy_depth`) and the
-labels stay exact. Time enters through the frame interval: a trajectory sampled at T frames is
+The effects act on colour only; depth keeps its own sensor model
+(`sensor_noise.noisy_depth`) and the labels stay exact. Time enters through the frame interval: a trajectory sampled at T frames is
 walked at a mean speed of `speed` m/s, so consecutive frames lie `step / speed` seconds apart.
 
 `SensingConfig.off()` turns everything off: the renderer then produces exactly the images of
-the plain `realism` pipeline (`sensor.noisy_image`).
+the plain `realism` pipeline (`sensor_noise.noisy_image`).
 
 Shape legend: H×W pixels, T frames, K poses within one exposure.
 """

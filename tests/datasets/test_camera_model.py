@@ -10,9 +10,9 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from jaxfusion.camera import Camera
-from jaxfusion.datasets import appearance, raycast, sensing, sensor, synthetic, trajectories
+from jaxfusion.datasets import appearance, camera_model, raycast, sensor_noise, synthetic, trajectories
 from jaxfusion.datasets import primitives as P
-from jaxfusion.datasets.sensing import CameraState, SensingConfig
+from jaxfusion.datasets.camera_model import CameraState, SensingConfig
 
 SIZE = dict(height=24, width=32)  # the size and sequence of test_synthetic: shared compiles
 CAM = Camera(30.0, 30.0, 15.0, 10.0)  # 31 × 21 images have their centre pixel on the axis
@@ -20,7 +20,7 @@ H, W = 21, 31
 
 
 def _state(exposure=1.0, gain=1.0, wb=(1.0, 1.0, 1.0), noise_scale=1.0, motion=None):
-  motion = sensing.still_state().motion if motion is None else motion
+  motion = camera_model.still_state().motion if motion is None else motion
   return CameraState(np.float32(exposure), np.float32(gain), np.asarray(wb, np.float32),
                      np.float32(noise_scale), np.asarray(motion, np.float32))
 
@@ -52,8 +52,8 @@ def test_off_reproduces_the_plain_realism_pipeline(sequences):
     tiles = raycast.tile_lists(packed, T, camera, tile=synthetic.TILE, min_sizes=sizes, **SIZE)
     hits = raycast.cast(packed, T, camera, tiles=tiles, tile=synthetic.TILE, **SIZE)
     k_depth, k_image = jax.random.split(k)
-    depth = sensor.noisy_depth(k_depth, hits.depth, hits.normal, hits.view_dir)
-    rgb = sensor.noisy_image(k_image, synthetic._shade(packed, hits, world.lighting))
+    depth = sensor_noise.noisy_depth(k_depth, hits.depth, hits.normal, hits.view_dir)
+    rgb = sensor_noise.noisy_image(k_image, synthetic._shade(packed, hits, world.lighting))
     np.testing.assert_array_equal(off.rgb[t], np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8))
     np.testing.assert_array_equal(off.depth[t], np.asarray(depth))
   assert "camera_states" not in off.info
@@ -112,7 +112,7 @@ def test_config_is_validated():
        dt=st.floats(1e-3, 10))
 def test_ae_exposure_stays_within_its_range(log_e, metered, set_point, dt):
   config = SensingConfig()
-  out = sensing.ae_step(log_e, metered, set_point, dt=dt, config=config)
+  out = camera_model.ae_step(log_e, metered, set_point, dt=dt, config=config)
   assert np.log(config.exposure_min) - 1e-12 <= out <= np.log(config.exposure_max) + 1e-12
 
 
@@ -124,7 +124,7 @@ def test_ae_follows_a_brightness_step_with_its_lag():
   log_e, history = 0.0, []
   for _ in range(12):
     metered = 0.5 * 0.42 * np.exp(log_e)
-    log_e = sensing.ae_step(log_e, metered, 0.42, dt=dt, config=config)
+    log_e = camera_model.ae_step(log_e, metered, 0.42, dt=dt, config=config)
     history.append(log_e)
   # Hand-computed: the gap to log 2 shrinks by (1 − α) per frame.
   expected = np.log(2.0) * (1.0 - (1.0 - alpha) ** np.arange(1, 13))
@@ -147,12 +147,12 @@ def test_sequence_exposure_and_white_balance_stay_in_range():
 
 def test_split_exposure_uses_time_first_then_gain():
   config = SensingConfig(exposure_time=0.01, max_exposure_time=0.03)
-  assert sensing.split_exposure(2.0, config) == pytest.approx((0.02, 1.0))
-  assert sensing.split_exposure(6.0, config) == pytest.approx((0.03, 2.0))
+  assert camera_model.split_exposure(2.0, config) == pytest.approx((0.02, 1.0))
+  assert camera_model.split_exposure(6.0, config) == pytest.approx((0.03, 2.0))
 
 
 def test_ou_process_is_stationary_with_its_correlation():
-  x = sensing.ou_process(np.random.default_rng(0), 20000, 0.5, 0.2, 2.0)[:, 0]
+  x = camera_model.ou_process(np.random.default_rng(0), 20000, 0.5, 0.2, 2.0)[:, 0]
   assert np.std(x) == pytest.approx(0.2, rel=0.08)
   lag1 = np.corrcoef(x[:-1], x[1:])[0, 1]
   assert lag1 == pytest.approx(np.exp(-0.5 / 2.0), abs=0.03)
@@ -165,7 +165,7 @@ def test_velocity_of_a_known_move():
   T_cur = trajectories.look_at((0.0, 0.0, 1.0), (1.0, 0.0, 1.0))  # looking along world +x
   T_prev = T_cur.copy()
   T_prev[:3, 3] -= [0.1, 0.0, 0.0]  # it came 0.1 m forward in 0.2 s
-  v, w = sensing.velocity(T_prev, T_cur, 0.2)
+  v, w = camera_model.velocity(T_prev, T_cur, 0.2)
   np.testing.assert_allclose(v, [0.0, 0.0, 0.5], atol=1e-6)  # +z: forward in the camera
   np.testing.assert_allclose(w, 0.0, atol=1e-6)
 
@@ -173,10 +173,10 @@ def test_velocity_of_a_known_move():
 def test_motion_blur_is_zero_when_still():
   img = _texture()
   depth = np.full((H, W), 2.0, np.float32)
-  out = sensing.motion_blur(img, depth, CAM, sensing.still_state().motion)
+  out = camera_model.motion_blur(img, depth, CAM, camera_model.still_state().motion)
   np.testing.assert_allclose(np.asarray(out), img, atol=1e-6)
-  still = sensing.motion_from_velocity(np.zeros(3), np.zeros(3), 0.03)
-  np.testing.assert_array_equal(still, sensing.still_state().motion)
+  still = camera_model.motion_from_velocity(np.zeros(3), np.zeros(3), 0.03)
+  np.testing.assert_array_equal(still, camera_model.still_state().motion)
 
 
 def test_motion_blur_length_matches_the_pan():
@@ -184,14 +184,14 @@ def test_motion_blur_length_matches_the_pan():
   img[10, 15] = 1.0  # one bright point on the optical axis
   depth = np.full((H, W), 3.0, np.float32)
   omega, t_exp = 20.0, 0.01  # a fast pan about the camera's y axis
-  motion = sensing.motion_from_velocity(np.zeros(3), [0.0, omega, 0.0], t_exp)
-  out = np.asarray(sensing.motion_blur(img, depth, CAM, motion))[..., 0]
+  motion = camera_model.motion_from_velocity(np.zeros(3), [0.0, omega, 0.0], t_exp)
+  out = np.asarray(camera_model.motion_blur(img, depth, CAM, motion))[..., 0]
   cols = np.nonzero(out.max(0) > 1e-6)[0]
   length = CAM.fx * np.tan(omega * t_exp)  # 6.2 px
   assert cols.max() - cols.min() == pytest.approx(length, abs=1.5)
   assert out[10].sum() > 0.95 * out.sum()  # (almost) no vertical smear
   assert out.sum() == pytest.approx(1.0, rel=0.15)  # about conserved (K taps, bilinear)
-  flat = np.asarray(sensing.motion_blur(np.full((H, W, 3), 0.3, np.float32), depth, CAM, motion))
+  flat = np.asarray(camera_model.motion_blur(np.full((H, W, 3), 0.3, np.float32), depth, CAM, motion))
   np.testing.assert_allclose(flat, 0.3, rtol=1e-6)
 
 
@@ -200,8 +200,8 @@ def test_motion_blur_grows_with_speed():
   depth = np.full((H, W), 2.0, np.float32)
   err = []
   for speed in (0.0, 0.5, 1.0, 2.0, 4.0):
-    motion = sensing.motion_from_velocity([speed, 0.0, 0.0], [0.0, 0.0, 0.0], 0.033)
-    out = np.asarray(sensing.motion_blur(img, depth, CAM, motion))
+    motion = camera_model.motion_from_velocity([speed, 0.0, 0.0], [0.0, 0.0, 0.0], 0.033)
+    out = np.asarray(camera_model.motion_blur(img, depth, CAM, motion))
     err.append(np.abs(out - img)[:, 4:-4].mean())
   assert err[0] < 1e-6 and np.all(np.diff(err) > 0)
 
@@ -224,7 +224,7 @@ def test_sequence_motion_follows_the_trajectory():
 
 def test_defocus_sigma_grows_with_distance_beyond_focus():
   z = np.array([1.5, 2.0, 3.0, 5.0, 10.0], np.float32)
-  s = np.asarray(sensing.defocus_sigma(z, 100.0, aperture=0.01, focus_distance=1.5,
+  s = np.asarray(camera_model.defocus_sigma(z, 100.0, aperture=0.01, focus_distance=1.5,
                                        optical_blur=0.5))
   assert s[0] == pytest.approx(0.5)
   coc = 0.01 * 100.0 * np.abs(1 / 1.5 - 1 / z)  # thin lens, in pixels
@@ -234,8 +234,8 @@ def test_defocus_sigma_grows_with_distance_beyond_focus():
 
 def test_gaussian_levels_match_scipy():
   img = _texture()
-  for sigma in sensing.BLUR_LEVELS[1:]:
-    ours = np.asarray(sensing._gaussian_blur(jnp.asarray(img), sigma))
+  for sigma in camera_model.BLUR_LEVELS[1:]:
+    ours = np.asarray(camera_model._gaussian_blur(jnp.asarray(img), sigma))
     ref = ndimage.gaussian_filter(img, (sigma, sigma, 0), mode="nearest", truncate=3.0)
     # scipy truncates at int(3σ + 0.5); both normalise their kernels.
     np.testing.assert_allclose(ours, ref, atol=2e-3 if sigma < 1 else 1e-5)
@@ -249,7 +249,7 @@ def test_defocused_image_loses_contrast_with_distance():
   contrast = []
   for z in (1.0, 2.0, 4.0, 8.0):
     depth = np.full((H, W), z, np.float32)
-    rgb, _ = sensing.camera_image(jax.random.PRNGKey(0), checker * 0.8, depth, CAM, _state(),
+    rgb, _ = camera_model.camera_image(jax.random.PRNGKey(0), checker * 0.8, depth, CAM, _state(),
                                   config)
     contrast.append(np.asarray(rgb)[6:-6, 6:-6].std())
   assert contrast[0] == pytest.approx(0.4, rel=1e-4)  # in focus, no blur: the checker itself
@@ -267,7 +267,7 @@ def _floor_highlight(eye_x):
   eye = np.array([eye_x, 0.0, 1.0], np.float32)
   view = (p - eye) / np.linalg.norm(p - eye, axis=-1, keepdims=True)
   normal = np.tile([0.0, 0.0, 1.0], (len(x), 1)).astype(np.float32)
-  spec = sensing.glossy_highlight(
+  spec = camera_model.glossy_highlight(
       normal, p, view, np.ones(len(x), np.float32), np.array([0.0, 0.0, 2.0], np.float32),
       np.ones(3, np.float32), np.array([0.0, 0.0, -1.0], np.float32), np.zeros(3, np.float32),
       strength=1.0, shininess=60.0)
@@ -291,12 +291,12 @@ def test_highlight_is_zero_on_matte_material_and_off():
   args = (normal, x, view)
   light = (np.array([0, 0, 2.0], np.float32), np.ones(3, np.float32),
            np.array([0, 0, -1.0], np.float32), np.ones(3, np.float32))
-  glossy = sensing.glossy_highlight(*args, np.ones(4, np.float32), *light, strength=1.0,
+  glossy = camera_model.glossy_highlight(*args, np.ones(4, np.float32), *light, strength=1.0,
                                     shininess=60.0)
   assert np.all(np.asarray(glossy) > 0.5)
-  matte = sensing.glossy_highlight(*args, np.zeros(4, np.float32), *light, strength=1.0,
+  matte = camera_model.glossy_highlight(*args, np.zeros(4, np.float32), *light, strength=1.0,
                                    shininess=60.0)
-  off = sensing.glossy_highlight(*args, np.ones(4, np.float32), *light, strength=0.0,
+  off = camera_model.glossy_highlight(*args, np.ones(4, np.float32), *light, strength=0.0,
                                  shininess=60.0)
   assert np.all(np.asarray(matte) == 0) and np.all(np.asarray(off) == 0)
 
@@ -305,14 +305,14 @@ def test_highlight_is_zero_on_matte_material_and_off():
 
 
 def test_vignetting_is_one_at_the_centre_and_falls_radially():
-  gain = np.asarray(sensing.vignetting_gain(CAM, H, W, 0.4))
+  gain = np.asarray(camera_model.vignetting_gain(CAM, H, W, 0.4))
   assert gain[10, 15] == pytest.approx(1.0)
   corner_tan2 = (15 / 30.0) ** 2 + (10 / 30.0) ** 2
   assert gain[0, 0] == pytest.approx(0.6 + 0.4 / (1 + corner_tan2) ** 2, rel=1e-6)
   r = np.hypot(*np.mgrid[-10:11, -15:16])
   order = np.argsort(r.ravel(), kind="stable")
   assert np.all(np.diff(gain.ravel()[order])[np.diff(r.ravel()[order]) > 1e-9] < 0)
-  np.testing.assert_array_equal(np.asarray(sensing.vignetting_gain(CAM, H, W, 0.0)), 1.0)
+  np.testing.assert_array_equal(np.asarray(camera_model.vignetting_gain(CAM, H, W, 0.0)), 1.0)
 
 
 @pytest.mark.parametrize("gain, noise_scale", [(1.0, 1.0), (3.0, 0.5)])
@@ -322,7 +322,7 @@ def test_noise_std_matches_the_configured_level(gain, noise_scale):
   flat = np.full((H, W, 3), 0.25, np.float32)
   depth = np.full((H, W), 2.0, np.float32)
   state = _state(exposure=2.0, gain=gain, noise_scale=noise_scale)
-  rgb, metered = sensing.camera_image(jax.random.PRNGKey(1), flat, depth, CAM, state, config)
+  rgb, metered = camera_model.camera_image(jax.random.PRNGKey(1), flat, depth, CAM, state, config)
   x = 0.5  # exposed signal
   expected = noise_scale * np.sqrt(1e-3 * gain * x + (0.01 * gain) ** 2)
   rgb = np.asarray(rgb)
@@ -336,7 +336,7 @@ def test_white_balance_scales_channels():
                          read_noise=0.0)
   img = _texture()
   depth = np.full((H, W), 2.0, np.float32)
-  rgb, _ = sensing.camera_image(jax.random.PRNGKey(0), img, depth, CAM,
+  rgb, _ = camera_model.camera_image(jax.random.PRNGKey(0), img, depth, CAM,
                                 _state(exposure=0.8, wb=(1.1, 1.0, 0.9)), config)
   np.testing.assert_allclose(np.asarray(rgb), np.clip(img * 0.8 * [1.1, 1.0, 0.9], 0, 1),
                              rtol=1e-5)
@@ -346,7 +346,7 @@ def test_white_balance_scales_channels():
 
 
 def test_pixel_footprint_by_hand():
-  fp = sensing.pixel_footprint(np.array([2.0, 4.0, 4.0]), np.array([1.0, 1.0, 0.25]), 100.0, 0.5)
+  fp = camera_model.pixel_footprint(np.array([2.0, 4.0, 4.0]), np.array([1.0, 1.0, 0.25]), 100.0, 0.5)
   np.testing.assert_allclose(np.asarray(fp), [0.01, 0.02, 0.04], rtol=1e-6)
 
 
@@ -379,27 +379,27 @@ def test_camera_effects_summary(sequences):
 
 
 def test_motion_taps_cover_the_streak():
-  assert [sensing.motion_taps(x) for x in (0.0, 0.2, 1.0, 1.5, 6.2, 7.0, 100.0)] == [
-      2, 2, 2, 4, 8, 8, sensing.MAX_MOTION_TAPS]
+  assert [camera_model.motion_taps(x) for x in (0.0, 0.2, 1.0, 1.5, 6.2, 7.0, 100.0)] == [
+      2, 2, 2, 4, 8, 8, camera_model.MAX_MOTION_TAPS]
   depth = np.full((H, W), 3.0, np.float32)
   omega, t_exp = [0.0, 20.0, 0.0], 0.01  # the pan of test_motion_blur_length_matches_the_pan
-  motion = sensing.exposure_motion(np.zeros(3), omega, t_exp, depth, CAM)
+  motion = camera_model.exposure_motion(np.zeros(3), omega, t_exp, depth, CAM)
   assert motion.shape == (16, 4, 4)  # the streak: 6.2 px on the axis, 8.6 px at the border
-  np.testing.assert_allclose(motion[-1], sensing.motion_from_velocity(np.zeros(3), omega,
+  np.testing.assert_allclose(motion[-1], camera_model.motion_from_velocity(np.zeros(3), omega,
                                                                       t_exp)[-1], atol=1e-6)
 
 
 def test_entry_points_reject_bad_input():
   img, depth = _texture(), np.full((H, W), 2.0, np.float32)
   with pytest.raises(ValueError, match="radiance"):
-    sensing.camera_image(jax.random.PRNGKey(0), img[..., :2], depth, CAM, _state(),
+    camera_model.camera_image(jax.random.PRNGKey(0), img[..., :2], depth, CAM, _state(),
                          SensingConfig())
   with pytest.raises(ValueError, match="CameraState"):
-    sensing.camera_image(jax.random.PRNGKey(0), img, depth, CAM,
+    camera_model.camera_image(jax.random.PRNGKey(0), img, depth, CAM,
                          _state()._replace(motion=np.eye(4)), SensingConfig())
   with pytest.raises(ValueError, match="dt"):
-    sensing.velocity(np.eye(4), np.eye(4), 0.0)
+    camera_model.velocity(np.eye(4), np.eye(4), 0.0)
   with pytest.raises(ValueError, match="speed"):
-    sensing.frame_interval(np.tile(np.eye(4), (3, 1, 1)), 0.0)
+    camera_model.frame_interval(np.tile(np.eye(4), (3, 1, 1)), 0.0)
   with pytest.raises(ValueError, match="taps"):
-    sensing.motion_from_velocity(np.zeros(3), np.zeros(3), 0.01, taps=0)
+    camera_model.motion_from_velocity(np.zeros(3), np.zeros(3), 0.01, taps=0)
