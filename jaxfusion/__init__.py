@@ -43,7 +43,7 @@ __version__ = "0.1.0"
 
 __all__ = sorted([
     "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch", "datasets",
-    "calibration_loss", "capacity_for", "fuse_batch", "fuse_frame", "io", "fuse_sequence", "fuse_sweep", "init_map",
-    "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid", "rules",
-    "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
+    "calibration_loss", "capacity_for", "fuse_batch", "fuse_frame", "fuse_sequence", "fuse_sweep",
+    "init_map", "io", "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid",
+    "rules", "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
 ])

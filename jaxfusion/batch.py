@@ -279,7 +279,8 @@ def num_stacked_rules(rules: rules_base.FusionRule) -> int:
   """R of a stack of rules: the common leading axis of its hyperparameter leaves (`(R,)`, or
   `(R, K)` for per-class values). Raises ValueError for an unstacked rule or ragged lengths."""
   leaves = jax.tree.leaves(rules.hparams)
-  # Leading axis = rules; per-class hyperparameters (docs/equations.md §3.7) add a trailing (K,) axis.
+  # Leading axis = rules; per-class hyperparameters (docs/equations.md §3.7) add a trailing (K,)
+  # axis.
   if not leaves or any(np.ndim(x) not in (1, 2) for x in leaves):
     raise ValueError("rules must be a stack of rules with hyperparameters, e.g. "
                      "rules.stack([rules.robust(beta=b) for b in betas]) or rule_grid(...)")

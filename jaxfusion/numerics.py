@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# Floor applied before taking the log of a probability (docs/equations.md §5.1: "log(max(p, tiny))"), so that a
-# hard zero never gives -inf. The smallest normal float32: log(TINY) ≈ -87.3.
+# Floor applied before taking the log of a probability (docs/equations.md §5.1: "log(max(p,
+# tiny))"), so that a hard zero never gives -inf. The smallest normal float32: log(TINY) ≈ -87.3.
 PROB_FLOOR = float(np.finfo(np.float32).tiny)
 
 # Largest value a saturating int32 counter reaches.

@@ -45,12 +45,12 @@ _MOMENT_GROUP = 32
 def mc_moments(samples: jax.Array) -> tuple[jax.Array, jax.Array]:
   """Mean and per-class epistemic variance of Monte-Carlo class probabilities, in one pass.
 
-  As in docs/equations.md §2.3: `p̄ = mean_s p^(s)` and `var_i = mean_s (p^(s)_i − p̄_i)^2` (the diagonal
-  of the paper's Σe, population variance over the M samples). Computed in one read of the
-  samples from the sums of `d_s = p^(s) − p^(0)` (shifted by the first sample, so constant
-  samples give exactly zero variance and no large sums cancel): `p̄ = p^(0) + Σd/M`,
-  `var = max(Σd²/M − (Σd/M)², 0)` — never negative, and within ~1e-7 of a float64 two-pass
-  result for probabilities (one-hot samples included).
+  As in docs/equations.md §2.3: `p̄ = mean_s p^(s)` and `var_i = mean_s (p^(s)_i − p̄_i)^2` (the
+  diagonal of the paper's Σe, population variance over the M samples). Computed in one read of the
+  samples from the sums of `d_s = p^(s) − p^(0)` (shifted by the first sample, so constant samples
+  give exactly zero variance and no large sums cancel): `p̄ = p^(0) + Σd/M`, `var = max(Σd²/M −
+  (Σd/M)², 0)` — never negative, and within ~1e-7 of a float64 two-pass result for probabilities
+  (one-hot samples included).
 
   Args:
     samples: `(M, H, W, K)` float softmax samples, one per dropout key / ensemble member.

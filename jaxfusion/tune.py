@@ -530,8 +530,8 @@ def evaluate_rules(rules: Sequence[rules_lib.FusionRule], frames: fusion.Frame,
   """Scores each rule of a list (scalar and per-class rules may be mixed) on the same data.
 
   Rules whose hyperparameters have the same shapes are stacked and scored in one `sweep` call,
-  so a scalar rule is scored with its scalar (bit-exact, docs/equations.md §3.4) path, never as a broadcast
-  vector.
+  so a scalar rule is scored with its scalar (bit-exact, docs/equations.md §3.4) path, never as a
+  broadcast vector.
 
   Returns:
     One dict per rule, in order: the `sweep` outputs without the leading R axis.

@@ -11,7 +11,8 @@ and the share of errors made with max-probability above 0.9; and the quartiles o
 rules' Dirichlet weight α = −log(var of the predicted class) on right and on wrong pixels.
 mIoU is given pooled over all pixels (`*_miou`, `metrics.pixel_miou`) and as the per-frame
 mIoU (`*_frame_miou`, `metrics.per_frame_miou`: the mean of each frame's own mIoU; not the
-map mIoU of the fusion results). `--timing` also measures the cost of MC sampling per frame for several M.
+map mIoU of the fusion results). `--timing` also measures the cost of MC sampling per frame for
+several M.
 
 Shape legend: N images, M Monte-Carlo samples, H×W pixels, K classes.
 """

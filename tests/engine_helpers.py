@@ -1,5 +1,5 @@
-"""Shared builders for the engine tests: small random frames with the bad data docs/equations.md (§2.1, §5) says the
-engine must survive (holes, NaN/inf depth, one-hot pixels, zero variance)."""
+"""Shared builders for the engine tests: small random frames with the bad data docs/equations.md
+(§2.1, §5) says the engine must survive (holes, NaN/inf depth, one-hot pixels, zero variance)."""
 
 import numpy as np
 

@@ -1,5 +1,5 @@
-"""A slow, obvious NumPy reference of docs/equations.md (§1–§3): a dict keyed by voxel coordinates, float64,
-plain Python loops over pixels and voxels. Written from the spec, not from the engine."""
+"""A slow, obvious NumPy reference of docs/equations.md (§1–§3): a dict keyed by voxel coordinates,
+float64, plain Python loops over pixels and voxels. Written from the spec, not from the engine."""
 
 import math
 from collections import defaultdict
@@ -23,8 +23,8 @@ def pixel_points(depth, T_world_cam, fx, fy, cx, cy):
 
 
 def per_class_regularize(p, beta):
-  """docs/equations.md §3.7, one pixel: `p̃_i = ((1−β_i) p_i + β_i/K) / Z`, `Z = Σ_i (…)`; uniform if
-  Z = 0."""
+  """docs/equations.md §3.7, one pixel: `p̃_i = ((1−β_i) p_i + β_i/K) / Z`, `Z = Σ_i (…)`; uniform
+  if Z = 0."""
   K = len(p)
   mixed = np.array([(1.0 - float(beta[i])) * p[i] + float(beta[i]) / K for i in range(K)])
   Z = sum(mixed)
@@ -32,8 +32,8 @@ def per_class_regularize(p, beta):
 
 
 class ReferenceMap:
-  """One map under one rule, by docs/equations.md §3. `rule` is one of the six paper names. `beta`, `eps` and
-  `alpha0` may be scalars or per-class sequences of length K (§3.7)."""
+  """One map under one rule, by docs/equations.md §3. `rule` is one of the six paper names. `beta`,
+  `eps` and `alpha0` may be scalars or per-class sequences of length K (§3.7)."""
 
   def __init__(self, rule, num_classes, voxel_size, *, beta=0.3, eps=1e-12,
                alpha0=-math.log(1e-3), aggregate="sum"):
@@ -76,7 +76,7 @@ class ReferenceMap:
       return
     if rule in ("robust_r", "robust_dr") and np.ndim(self.beta) == 0:
       pixels = [((1 - self.beta) * p + self.beta / K, s) for p, s in pixels]
-    elif rule in ("robust_r", "robust_dr"):   # docs/equations.md §3.7: per-class β, renormalised by Z_j
+    elif rule in ("robust_r", "robust_dr"):   # docs/equations.md §3.7: per-class β, over Z_j
       pixels = [(per_class_regularize(p, self.beta), s) for p, s in pixels]
     logs = [np.log(np.maximum(p, TINY)) for p, _ in pixels]
     if rule in ("bayes", "robust_r"):

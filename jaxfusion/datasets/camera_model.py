@@ -37,8 +37,9 @@ from the next, each with a physical model and a documented parameter in `Sensing
   the result is white-balanced, clipped and quantised to 8 bits by the renderer.
 
 The effects act on colour only; depth keeps its own sensor model
-(`sensor_noise.noisy_depth`) and the labels stay exact. Time enters through the frame interval: a trajectory sampled at T frames is
-walked at a mean speed of `speed` m/s, so consecutive frames lie `step / speed` seconds apart.
+(`sensor_noise.noisy_depth`) and the labels stay exact. Time enters through the frame interval:
+a trajectory sampled at T frames is walked at a mean speed of `speed` m/s, so consecutive frames
+lie `step / speed` seconds apart.
 
 `SensingConfig.off()` turns everything off: the renderer then produces exactly the images of
 the plain `realism` pipeline (`sensor_noise.noisy_image`).
@@ -639,7 +640,8 @@ def _lens_and_sensor(key, img, depth, camera: Camera, state: CameraState, config
   sigma = defocus_sigma(depth, camera.fx, aperture=config.aperture,
                         focus_distance=config.focus_distance, optical_blur=config.optical_blur)
   img = variable_blur(img, sigma)
-  raw = img * (state.exposure * vignetting_gain(camera, height, width, config.vignetting))[..., None]
+  gain = state.exposure * vignetting_gain(camera, height, width, config.vignetting)
+  raw = img * gain[..., None]
   var = (config.shot_noise * state.gain * jnp.maximum(raw, 0.0)
          + jnp.square(config.read_noise * state.gain))
   noisy = raw + state.noise_scale * jnp.sqrt(var) * jax.random.normal(key, raw.shape)

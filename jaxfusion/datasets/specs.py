@@ -54,8 +54,9 @@ def _embedded(env: str, trajectory: str, domain: str, spec: str) -> SequenceSpec
   if (env not in synthetic.ENVIRONMENTS or trajectory not in
       tuple(str(t) for t in range(synthetic.NUM_TRAJECTORIES)) or domain not in DOMAINS):
     raise ValueError(
-        f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN] with ENV {'|'.join(synthetic.ENVIRONMENTS)}, "
-        f"TRAJECTORY 0|1|2 and DOMAIN test|train (e.g. office:0); got {spec!r}")
+        f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN] with ENV "
+        f"{'|'.join(synthetic.ENVIRONMENTS)}, TRAJECTORY 0|1|2 and DOMAIN test|train (e.g. "
+        f"office:0); got {spec!r}")
   return SequenceSpec("synthetic", env=env, trajectory=int(trajectory), domain=domain)
 
 

@@ -10,10 +10,10 @@ trained on different data) is replaced by procedural rooms rendered with a JAX r
 * `make_scene` / `render` — the scene and the single-frame renderer behind them.
 
 With `realism` (the default of the sequences and views), colour goes through the camera model
-of `camera_model.SensingConfig` — auto-exposure and white-balance drift, motion blur, defocus, glossy
-highlights, vignetting, per-frame sensor noise — in both domains; `SensingConfig.off()` gives
-the plain sensor model (blur, vignetting and noise alike in every frame). Depth keeps its own
-sensor model and the labels stay exact either way.
+of `camera_model.SensingConfig` — auto-exposure and white-balance drift, motion blur, defocus,
+glossy highlights, vignetting, per-frame sensor noise — in both domains; `SensingConfig.off()`
+gives the plain sensor model (blur, vignetting and noise alike in every frame). Depth keeps its
+own sensor model and the labels stay exact either way.
 
 Example:
   >>> seq = make_sequence("office", 0, num_frames=30, height=120, width=160)

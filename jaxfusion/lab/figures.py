@@ -273,8 +273,8 @@ def miou_vs_beta(path: str, betas, miou, *, title: str) -> None:
 
 
 def objective_comparison(path: str, result: dict) -> None:
-  """`jaxfusion tune-compare`'s PNG: mIoU and the two surrogates (rescaled to [0, 1], higher is better) against β on the
-  calibration and held-out batches, with each objective's β*."""
+  """`jaxfusion tune-compare`'s PNG: mIoU and the two surrogates (rescaled to [0, 1], higher is
+  better) against β on the calibration and held-out batches, with each objective's β*."""
   plt = _pyplot()
   betas = result["betas"]
   colors = {"soft_iou": "tab:orange", "cross_entropy": "tab:green"}
@@ -304,7 +304,8 @@ def objective_comparison(path: str, result: dict) -> None:
 
 
 def per_class_beta(path: str, result: dict, class_names: Sequence[str]) -> None:
-  """`jaxfusion tune-protocol`'s PNG: the per-class β* as bars, the scalar β* and the baseline as lines."""
+  """`jaxfusion tune-protocol`'s PNG: the per-class β* as bars, the scalar β* and the baseline as
+  lines."""
   plt = _pyplot()
   methods = result["methods"]
   per_class = methods["per-class β*"]["beta"]
@@ -335,8 +336,9 @@ def _param_label(param: str) -> str:
 
 
 def simulation_heatmap(path: str, result: dict) -> None:
-  """`jaxfusion simulate-sweep`'s 2×2 PNG: mIoU of Bayes and D+R, D+R − Bayes, oracle − Bayes (mean over draws,
-  ± the standard deviation over draws in the difference panels when there are several)."""
+  """`jaxfusion simulate-sweep`'s 2×2 PNG: mIoU of Bayes and D+R, D+R − Bayes, oracle − Bayes (mean
+  over draws, ± the standard deviation over draws in the difference panels when there are
+  several)."""
   plt = _pyplot()
   rules = result["rules"]
   miou = 100.0 * np.asarray(result["miou"])           # (Y, X, D, R)

@@ -505,12 +505,12 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
   """Writes the tables (Markdown, CSV, JSON) and the four PNG figures; returns the paths."""
   os.makedirs(out_dir, exist_ok=True)
   shifts = np.array([float(s) for s in config.run.shifts])
-  note = (f"{len(config.run.units)} sequences per shift ({len(config.run.layout_seeds)} "
-          f"layout seed(s) × "
-          f"{len(config.run.envs)} environment(s) × {len(config.run.trajectories)} trajectory(ies)), "
-          f"{config.run.num_frames} frames at {config.run.height}×{config.run.width}, M = "
-          f"{config.run.num_samples}, β = {config.run.beta}, {config.run.voxel_size} m voxels, pixel "
-          f"aggregation: {config.run.aggregate}; layout seeds {list(config.run.layout_seeds)}; "
+  run = config.run
+  note = (f"{len(run.units)} sequences per shift ({len(run.layout_seeds)} layout seed(s) × "
+          f"{len(run.envs)} environment(s) × {len(run.trajectories)} trajectory(ies)), "
+          f"{run.num_frames} frames at {run.height}×{run.width}, M = {run.num_samples}, "
+          f"β = {run.beta}, {run.voxel_size} m voxels, pixel aggregation: {run.aggregate}; "
+          f"layout seeds {list(run.layout_seeds)}; "
           f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
           f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
   table = format_tables(summary, config, note)

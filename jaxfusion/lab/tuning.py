@@ -254,10 +254,10 @@ def tune_protocol(calibration: dict, held_out: dict, *, rule: str = "D+R",
   """Scalar β*, per-class β* and the paper's β side by side on held-out sequences.
 
   β is tuned by gradient (`tune_hparams`, `objective`) on the calibration batch, once as one
-  scalar and once per class (docs/equations.md §3.7); the three rules are then fused on every held-out
-  sequence and scored against GT voxel labels. Intervals are percentile bootstraps over the
-  held-out sequences (`stats.bootstrap` of the pooled confusion's mIoU), and the differences
-  to the baseline are paired bootstraps on the same resamples (`stats.paired_difference`).
+  scalar and once per class (docs/equations.md §3.7); the three rules are then fused on every
+  held-out sequence and scored against GT voxel labels. Intervals are percentile bootstraps over the
+  held-out sequences (`stats.bootstrap` of the pooled confusion's mIoU), and the differences to the
+  baseline are paired bootstraps on the same resamples (`stats.paired_difference`).
 
   Args:
     calibration: a batch from `load_sequence_batch` (e.g. layout seeds A).

@@ -1,4 +1,5 @@
-"""The three baselines of docs/equations.md §3.1–§3.3: sum of probabilities, label voting, and Bayesian fusion."""
+"""The three baselines of docs/equations.md §3.1–§3.3: sum of probabilities, label voting, and
+Bayesian fusion."""
 
 import jax
 import jax.numpy as jnp

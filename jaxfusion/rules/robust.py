@@ -9,8 +9,8 @@ and both together, D+R.
        variance at 1e-3; `α₀ = 0` is the literal reading of the equations.
 - D+R: D on p̃.
 
-**Per-class hyperparameters** (docs/equations.md §3.7; the paper's future work). β, ε and α₀ may each be a
-scalar or a `(K,)` vector with one value per class:
+**Per-class hyperparameters** (docs/equations.md §3.7; the paper's future work). β, ε and α₀ may
+each be a scalar or a `(K,)` vector with one value per class:
 - β per class: `p̃_j,i = ((1−β_i) p̄_j,i + β_i/K) / Z_j` with `Z_j = Σ_i ((1−β_i) p̄_j,i + β_i/K)`,
   so p̃_j stays a distribution (it is the class-i mixing weight, not the β of the pixel's
   predicted class, which would make p̃ a non-smooth function of p̄ at argmax ties). A scalar β

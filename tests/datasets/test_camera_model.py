@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from jaxfusion.camera import Camera
-from jaxfusion.datasets import appearance, camera_model, raycast, sensor_noise, synthetic, trajectories
+from jaxfusion.datasets import (appearance, camera_model, raycast, sensor_noise, synthetic,
+                                trajectories)
 from jaxfusion.datasets import primitives as P
 from jaxfusion.datasets.camera_model import CameraState, SensingConfig
 
@@ -191,7 +192,8 @@ def test_motion_blur_length_matches_the_pan():
   assert cols.max() - cols.min() == pytest.approx(length, abs=1.5)
   assert out[10].sum() > 0.95 * out.sum()  # (almost) no vertical smear
   assert out.sum() == pytest.approx(1.0, rel=0.15)  # about conserved (K taps, bilinear)
-  flat = np.asarray(camera_model.motion_blur(np.full((H, W, 3), 0.3, np.float32), depth, CAM, motion))
+  flat = np.asarray(camera_model.motion_blur(np.full((H, W, 3), 0.3, np.float32), depth, CAM,
+                                             motion))
   np.testing.assert_allclose(flat, 0.3, rtol=1e-6)
 
 
@@ -346,7 +348,8 @@ def test_white_balance_scales_channels():
 
 
 def test_pixel_footprint_by_hand():
-  fp = camera_model.pixel_footprint(np.array([2.0, 4.0, 4.0]), np.array([1.0, 1.0, 0.25]), 100.0, 0.5)
+  fp = camera_model.pixel_footprint(np.array([2.0, 4.0, 4.0]), np.array([1.0, 1.0, 0.25]), 100.0,
+                                    0.5)
   np.testing.assert_allclose(np.asarray(fp), [0.01, 0.02, 0.04], rtol=1e-6)
 
 

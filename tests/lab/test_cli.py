@@ -33,7 +33,8 @@ def _fenced_commands(text: str) -> list:
 
 
 def test_the_scan_finds_commands():
-  text = "```bash\njaxfusion demo --quick  # x\nls && jaxfusion list\n```\n```python\njaxfusion x\n```"
+  text = ("```bash\njaxfusion demo --quick  # x\nls && jaxfusion list\n```\n"
+          "```python\njaxfusion x\n```")
   assert _fenced_commands(text) == ["jaxfusion demo --quick", "jaxfusion list"]
 
 
