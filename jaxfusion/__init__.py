@@ -22,10 +22,14 @@ from jaxfusion.batch import make_mesh
 from jaxfusion.batch import rule_grid
 from jaxfusion.batch import stack_sequences
 from jaxfusion.camera import Camera
+from jaxfusion.classmap import ClassMap
 from jaxfusion.fusion import Frame
 from jaxfusion.fusion import fuse_frame
 from jaxfusion.fusion import fuse_sequence
 from jaxfusion.hashing import EMPTY
+from jaxfusion.mapper import Mapper
+from jaxfusion.readout import QueryResult
+from jaxfusion.readout import query
 from jaxfusion.readout import read_map
 from jaxfusion.readout import voxel_posteriors
 from jaxfusion.rules import FusionRule
@@ -33,6 +37,7 @@ from jaxfusion.sources import mc_moments
 from jaxfusion.state import MapFullWarning
 from jaxfusion.state import MapState
 from jaxfusion.state import capacity_for
+from jaxfusion.state import grow_map
 from jaxfusion.state import init_map
 from jaxfusion.state import map_stats
 from jaxfusion.tune import calibration_loss
@@ -42,8 +47,9 @@ from jaxfusion.tune import tune_hparams
 __version__ = "0.1.0"
 
 __all__ = sorted([
-    "Camera", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "batch", "datasets",
-    "calibration_loss", "capacity_for", "fuse_batch", "fuse_frame", "fuse_sequence", "fuse_sweep",
-    "init_map", "io", "make_mesh", "map_stats", "mc_moments", "metrics", "read_map", "rule_grid",
-    "rules", "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
+    "Camera", "ClassMap", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "Mapper",
+    "QueryResult", "batch", "calibration_loss", "capacity_for", "datasets", "fuse_batch",
+    "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "make_mesh",
+    "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules", "sources",
+    "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
 ])

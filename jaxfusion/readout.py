@@ -1,14 +1,20 @@
 """Reading a map out: per-voxel labels, normalised posteriors, entropy and confidence.
 
-`voxel_posteriors` is jittable and differentiable (for losses on the map); `read_map` is the
-host-side view over occupied voxels as NumPy arrays. Shape legend: C slots, N occupied voxels,
-K classes.
+`voxel_posteriors` is jittable and differentiable (for losses on the map); `query` is jittable
+and answers for arbitrary world points (a planner's information-gain loop); `read_map` is the
+host-side view over occupied voxels as NumPy arrays, optionally restricted to some classes and
+an axis-aligned box. Shape legend: C slots, N occupied voxels, K classes, `...` any leading
+shape of query points.
 """
+
+import numbers
+from typing import NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxfusion import camera as camera_lib
 from jaxfusion import hashing
 from jaxfusion import numerics
 from jaxfusion.state import MapState, warn_if_dropped
@@ -24,10 +30,145 @@ def voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
   return posterior, state.keys[:, 0] != hashing.EMPTY
 
 
-def read_map(state: MapState) -> dict:
+class QueryResult(NamedTuple):
+  """What the map holds at some world points (`query`); `...` is the points' leading shape."""
+  found: jax.Array       # [...] bool, the point's voxel is in the map
+  posterior: jax.Array   # [..., K] float32, the voxel's posterior; the prior where not found
+  entropy: jax.Array     # [...] float32, entropy of `posterior` in nats
+  hits: jax.Array        # [...] int32, pixels fused into the voxel; 0 where not found
+
+
+def _prior_posterior(state: MapState) -> jax.Array:
+  """`(K,) float32` posterior of the rule's prior: the row an empty slot holds (docs/
+  equations.md §1.4), read from the first empty slot; uniform if the map has no empty slot."""
+  empty = state.keys[:, 0] == hashing.EMPTY
+  slot = jnp.argmax(empty)
+  prior = state.posterior_fn(jax.tree.map(lambda r: r[slot], state.rows))
+  uniform = jnp.full((state.num_classes,), 1.0 / state.num_classes, jnp.float32)
+  return jnp.where(empty[slot], prior.astype(jnp.float32), uniform)
+
+
+def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
+  """`query`'s pure body, without the input checks (use `query`)."""
+  points = jnp.asarray(points_world, jnp.float32)
+  lead = points.shape[:-1]
+  keys, in_range = camera_lib.voxel_keys(points.reshape(-1, 3), state.voxel_size)
+  slots, found = hashing.lookup(state.keys, keys, max_probes=state.max_probes)
+  found = found & in_range
+  posterior = jax.vmap(state.posterior_fn)(jax.tree.map(lambda r: r[slots], state.rows))
+  posterior = jnp.where(found[:, None], posterior, _prior_posterior(state)[None, :])
+  hits = jnp.where(found, state.hits[slots], 0)
+  return QueryResult(
+      found=found.reshape(lead),
+      posterior=posterior.reshape(lead + (state.num_classes,)),
+      entropy=numerics.entropy(posterior).reshape(lead),
+      hits=hits.reshape(lead),
+  )
+
+
+_query_jit = jax.jit(query_unchecked)
+
+
+def query(state: MapState, points_world: jax.Array) -> QueryResult:
+  """What the map holds at world points: found, posterior, entropy and hits (jittable).
+
+  A point falls in the voxel `floor(p / voxel_size)` (docs/equations.md §1.1), computed by the
+  same function and in the same float32 arithmetic as the engine's keys, so any point inside a
+  fused voxel (its centre included) finds that voxel. Points that are not finite or whose key
+  is out of range (±KEY_LIMIT) are simply not found.
+
+  A point whose voxel is not in the map (never observed, out of range, or dropped because the
+  map was full) reports what an unobserved voxel holds: the posterior of the rule's prior —
+  the row every empty slot holds (§1.4), uniform `1/K` for all six rules of the paper, so the
+  entropy is `log K` — and 0 hits. A custom rule with a non-uniform prior reports that prior.
+  It is read from an empty slot (one pass over the keys); a map with no empty slot at all
+  reports uniform.
+
+  Jitted (no host sync), and jittable, vmappable and differentiable as a whole: `jax.jit(query)`
+  takes the state as an argument and compiles once per map and points shape; the posterior is a
+  gather of the map's rows, so gradients flow to the rows and, through `fuse_frame`, to the
+  rule's hyperparameters. Batched maps: `jax.vmap(query, in_axes=(0, None))`.
+
+  A planner scores a candidate view by back-projecting the depth it expects to see and
+  averaging `query(state, p_world).entropy` (README, "Queries").
+
+  Args:
+    state: one map (not a batched one).
+    points_world: `(..., 3)` float world points in metres, any leading shape (NaN/inf allowed).
+
+  Returns:
+    A QueryResult of `found (...,) bool`, `posterior (..., K) float32`, `entropy (...,)
+    float32` (nats) and `hits (...,) int32`.
+
+  Raises:
+    TypeError: `state` is not a MapState, or the points are not a float array.
+    ValueError: a batched map, or points whose last axis is not 3.
+  """
+  if not isinstance(state, MapState):
+    raise TypeError(f"query expects a MapState; got {type(state).__name__}")
+  if state.keys.ndim != 2:
+    raise ValueError("query expects one map; index a batched map first, e.g. "
+                     "jax.tree.map(lambda x: x[i], state), or jax.vmap(query, in_axes=(0, None))")
+  if not isinstance(points_world, (jax.Array, np.ndarray)):
+    try:
+      points_world = np.asarray(points_world)      # a list: one leaf, not one per number
+    except (TypeError, ValueError):
+      raise TypeError("points_world must be a float array of world points (..., 3) in metres; "
+                      f"got {type(points_world).__name__}") from None
+  shape, dtype = points_world.shape, points_world.dtype
+  if not jnp.issubdtype(dtype, jnp.floating):
+    raise TypeError(f"points_world must be a float array of world points in metres; got dtype "
+                    f"{dtype}")
+  if len(shape) < 1 or shape[-1] != 3:
+    raise ValueError(f"points_world must have shape (..., 3); got {tuple(shape)}")
+  return _query_jit(state, points_world)
+
+
+def _check_classes(classes, num_classes: int) -> np.ndarray:
+  """`classes` (an index or a sequence of indices) as a sorted `(M,) int64` array."""
+  items = [classes] if isinstance(classes, numbers.Integral) else classes
+  try:
+    items = list(items)
+  except TypeError:
+    raise TypeError(f"classes must be a sequence of class indices; got {classes!r}") from None
+  for c in items:
+    if isinstance(c, (bool, np.bool_)) or not isinstance(c, numbers.Integral):
+      raise TypeError(f"classes must be integer class indices; got {c!r} in {classes!r}")
+    if not 0 <= int(c) < num_classes:
+      raise ValueError(f"class index {int(c)} out of range for a map of {num_classes} classes "
+                       f"(0 … {num_classes - 1})")
+  return np.unique(np.asarray([int(c) for c in items], np.int64))
+
+
+def _check_box(box) -> tuple[np.ndarray, np.ndarray]:
+  """`box = (min_xyz, max_xyz)` in metres as two finite `(3,) float64` arrays with min ≤ max."""
+  try:
+    lo, hi = box
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+  except (TypeError, ValueError):
+    raise TypeError("box must be a pair (min_xyz, max_xyz) of 3 numbers each, in metres; got "
+                    f"{box!r}") from None
+  if lo.shape != (3,) or hi.shape != (3,):
+    raise ValueError(f"box corners must each have shape (3,); got {lo.shape} and {hi.shape}")
+  if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+    raise ValueError(f"box corners must be finite; got {lo.tolist()} and {hi.tolist()}")
+  if np.any(lo > hi):
+    raise ValueError(f"box min must be ≤ max on every axis; got min {lo.tolist()} and max "
+                     f"{hi.tolist()}")
+  return lo, hi
+
+
+def read_map(state: MapState, *, classes: Optional[Sequence[int]] = None,
+             box: Optional[tuple] = None) -> dict:
   """The occupied voxels of one map as NumPy arrays, sorted by voxel coordinates.
 
   Warns with `MapFullWarning` if any voxel was dropped because the map was full.
+
+  Args:
+    state: one map (not a batched one).
+    classes: keep only the voxels whose label is one of these class indices (`0 … K−1`).
+    box: `(min_xyz, max_xyz)` in metres, each `(3,)`: keep only the voxels whose centre (the
+      float32 `centers` below) lies in this axis-aligned box, faces included.
 
   Returns:
     dict with
@@ -38,12 +179,19 @@ def read_map(state: MapState) -> dict:
       `hits (N,) int32` pixels fused into the voxel,
       `entropy (N,) float32` of the posterior in nats,
       `confidence (N, K) float32` ᾱ — only for the Dirichlet rules.
+
+  Raises:
+    TypeError: `state` is not a MapState, or `classes`/`box` are not of the types above.
+    ValueError: a batched map, a class index out of range, or a box that is not finite, not of
+      shape (3,) per corner, or has min > max on some axis.
   """
   if not isinstance(state, MapState):
     raise TypeError(f"read_map expects a MapState; got {type(state).__name__}")
   if state.keys.ndim != 2:
     raise ValueError("read_map expects one map; index a batched map first, e.g. "
                      "jax.tree.map(lambda x: x[i], state)")
+  wanted = None if classes is None else _check_classes(classes, state.num_classes)
+  bounds = None if box is None else _check_box(box)
   keys = np.asarray(state.keys)
   occupied = np.nonzero(keys[:, 0] != hashing.EMPTY)[0]
   coords = keys[occupied]
@@ -62,5 +210,14 @@ def read_map(state: MapState) -> dict:
   }
   if state.confidence_fn is not None:
     out["confidence"] = np.asarray(jax.vmap(state.confidence_fn)(rows), np.float32)
+  # Selected on the host after reading every voxel out, so that the JAX operations above see
+  # one shape per map, whatever the selection (no compilation per box or class set).
+  if wanted is not None or bounds is not None:
+    keep = np.ones(len(slots), bool)
+    if wanted is not None:
+      keep &= np.isin(out["labels"], wanted)
+    if bounds is not None:
+      keep &= np.all((out["centers"] >= bounds[0]) & (out["centers"] <= bounds[1]), axis=-1)
+    out = {name: value[keep] for name, value in out.items()}
   warn_if_dropped(int(state.num_dropped), state.capacity)
   return out

@@ -33,6 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxfusion.classmap import ClassMap  # noqa: F401  (re-exported: sources.ClassMap)
+
 
 # Samples summed in one fused pass: `mc_moments` adds up to this many (H, W, K) samples in one
 # elementwise loop (each output value reads its M inputs once), then adds the group's sums to the

@@ -3,6 +3,7 @@
 Shape legend: C slots (capacity, a power of two), K classes.
 """
 
+import functools
 import math
 import warnings
 from typing import Any, Callable, Optional
@@ -54,7 +55,8 @@ def capacity_for(num_voxels: int, *, load: float = 0.25, minimum: int = 1024) ->
   """The smallest power-of-two capacity that holds `num_voxels` at load factor ≤ `load`.
 
   `capacity_for(n)` is the map size the commands give a sequence with n GT voxels (4n slots,
-  at least `minimum`); keep the load factor below ~0.7 (README: a full map drops voxels).
+  at least `minimum`); keep the load factor below ~0.5 (docs/equations.md §1.3: probes
+  lengthen and a full map drops voxels) or use a growing `Mapper`.
   """
   if not 0.0 < load <= 1.0:
     raise ValueError(f"load must lie in (0, 1]; got {load}")
@@ -74,7 +76,7 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
 
   Args:
     capacity: number of slots C; rounded up to a power of two (with a warning) if it is not one.
-      Keep the fill below ~70 % for short probes.
+      Keep the fill below ~50 % for short probes (docs/equations.md §1.3).
     num_classes: K ≥ 2.
     voxel_size: voxel edge in metres (> 0).
     rule: the FusionRule this map will be fused with; it owns the per-voxel rows.
@@ -149,3 +151,79 @@ def map_stats(state: MapState) -> dict:
       "rule": state.rule_name,
       "max_probes": state.max_probes,
   }
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "max_probes"))
+def _rehash(keys, active, *, capacity: int, max_probes: int):
+  result = hashing.insert(hashing.empty_table(capacity), jnp.zeros(capacity, jnp.int32), keys,
+                          active, max_probes=max_probes)
+  return result.table, result.slots, result.found
+
+
+def grow_map(state: MapState, capacity: int, *,
+             rule: Optional[rules_base.FusionRule] = None) -> MapState:
+  """The same map in a larger table: every voxel keeps its rows (posterior, ᾱ, …) and hit
+  count exactly; only the slots change.
+
+  Not jitted, and not jittable: the capacity is an array shape. Call it between frames (the
+  `Mapper` does, before a frame could push the load factor past its threshold).
+
+  Args:
+    state: an unbatched map; it is not donated and stays valid.
+    capacity: the new number of slots, a power of two ≥ the current capacity.
+    rule: the map's rule, for the prior of the new empty slots; needed only when the old map
+      has no empty slot to copy the prior from.
+
+  Returns:
+    A MapState with `capacity` slots, the same voxels, rows, hits, dropped count, voxel size
+    and rule.
+
+  Raises:
+    ValueError: a batched map, a capacity that is not a power of two or is smaller than the
+      current one, a rule that does not match, or a table too full to rehash within
+      `max_probes` (pick a larger capacity).
+  """
+  if not isinstance(state, MapState):
+    raise TypeError(f"grow_map expects a MapState; got {type(state).__name__}")
+  if state.keys.ndim != 2:
+    raise ValueError("grow_map expects one map; index a batched map first")
+  capacity = _check_positive_int(capacity, "capacity")
+  if capacity & (capacity - 1) or capacity > 2**30:
+    raise ValueError(f"capacity must be a power of two ≤ 2**30; got {capacity}")
+  if capacity < state.capacity:
+    raise ValueError(f"grow_map cannot shrink a map: capacity {capacity} < {state.capacity}")
+  if rule is not None and rule.name != state.rule_name:
+    raise ValueError(f"rule {rule.name!r} does not match the map's {state.rule_name!r}")
+  keys = np.asarray(state.keys)
+  occupied = keys[:, 0] != hashing.EMPTY
+  old_slots = np.nonzero(occupied)[0]
+  if rule is not None:
+    prior = rule.init(state.num_classes, rule.hparams)
+  elif not occupied.all():
+    empty_slot = int(np.argmin(occupied))
+    prior = jax.tree.map(lambda r: r[empty_slot], state.rows)
+  else:
+    raise ValueError("the map has no empty slot to take the prior from: pass its rule")
+  # Pad the rehashed keys to a power of two so that growing sequences compile a few shapes.
+  n = max(len(old_slots), 1)
+  padded = 1 << (n - 1).bit_length()
+  rehash_keys = np.zeros((padded, 3), np.int32)
+  rehash_keys[:len(old_slots)] = keys[old_slots]
+  active = np.arange(padded) < len(old_slots)
+  table, slots, found = _rehash(jnp.asarray(rehash_keys), jnp.asarray(active),
+                                capacity=capacity, max_probes=state.max_probes)
+  found = np.asarray(found)[:len(old_slots)]
+  if not found.all():
+    raise ValueError(f"{int((~found).sum())} of {len(old_slots)} voxels found no slot within "
+                     f"{state.max_probes} probes at capacity {capacity}: grow to a larger one")
+  new_slots = jnp.asarray(np.asarray(slots)[:len(old_slots)])
+  old = jnp.asarray(old_slots)
+
+  def move(old_rows, prior_row):
+    fresh = jnp.tile(jnp.asarray(prior_row, jnp.float32)[None], (capacity, 1))
+    return fresh.at[new_slots].set(old_rows[old])
+
+  rows = jax.tree.map(move, state.rows, prior)
+  hits = jnp.zeros(capacity, jnp.int32).at[new_slots].set(state.hits[old])
+  return state.replace(keys=table, rows=rows, hits=hits,
+                       claims=jnp.zeros(capacity, jnp.int32))

@@ -11,9 +11,19 @@ Two label sets are used:
 
 `IGNORE_LABEL = -1` marks pixels that carry no ground truth: they are never fused into GT
 voxel labels and should be excluded from metrics.
+
+Class maps (`jaxfusion.ClassMap`) for a network that predicts NYU40 classes: `nyu40_class_map`
+builds NYU40 → the paper's 12 classes (`NYU40_TABLE`) or → the ScanNet benchmark's 20 classes
+(`SCANNET20_TABLE`, `SCANNET20_CLASS_NAMES`); the classes without a target are dropped, as the
+ScanNet loader ignores their labels. The same maps ship as files for `jaxfusion run --class-map`:
+`class_map_path("nyu40_to_scannet12")`, `class_map_path("nyu40_to_scannet20")`.
 """
 
+import pathlib
+
 import numpy as np
+
+from jaxfusion.classmap import ClassMap
 
 IGNORE_LABEL = -1
 
@@ -96,6 +106,76 @@ def nyu40_to_scannet12_lut() -> np.ndarray:
 
 
 NYU40_TO_SCANNET12 = nyu40_to_scannet12_lut()
+
+# The NYU40 names by id (index 0 is "unannotated").
+NYU40_CLASS_NAMES = tuple(name for _, name, _ in NYU40_TABLE)
+
+# The ScanNet benchmark's 20 classes: (NYU40 id, name), in the benchmark's order
+# (`VALID_CLASS_IDS` of ScanNet's evaluation scripts). The other NYU40 ids are not scored.
+SCANNET20_TABLE = (
+    (1, "wall"), (2, "floor"), (3, "cabinet"), (4, "bed"), (5, "chair"), (6, "sofa"),
+    (7, "table"), (8, "door"), (9, "window"), (10, "bookshelf"), (11, "picture"),
+    (12, "counter"), (14, "desk"), (16, "curtain"), (24, "refrigerator"),
+    (28, "shower curtain"), (33, "toilet"), (34, "sink"), (36, "bathtub"),
+    (39, "otherfurniture"),
+)
+SCANNET20_CLASS_NAMES = tuple(name for _, name in SCANNET20_TABLE)
+
+
+def nyu40_to_scannet20_lut() -> np.ndarray:
+  """Lookup table from NYU40 ids to the benchmark's 20-class indices.
+
+  Returns:
+    `(256,) int32`: entry `i` is the index into `SCANNET20_CLASS_NAMES` of NYU40 id `i`, or
+    `IGNORE_LABEL` for the ids the benchmark does not score.
+  """
+  lut = np.full((256,), IGNORE_LABEL, np.int32)
+  for index, (nyu_id, _) in enumerate(SCANNET20_TABLE):
+    lut[nyu_id] = index
+  return lut
+
+
+NYU40_TO_SCANNET20 = nyu40_to_scannet20_lut()
+
+# The class maps shipped as files (`jaxfusion/datasets/class_maps/NAME.json`).
+CLASS_MAPS = ("nyu40_to_scannet12", "nyu40_to_scannet20")
+
+
+def nyu40_class_map(target: str = "scannet12", *, unannotated: bool = True) -> ClassMap:
+  """A class map from a network's NYU40 classes to the paper's 12 or the benchmark's 20.
+
+  NYU40 classes without a target (for 12: unannotated and wall; for 20: unannotated and the
+  20 unscored ids) are dropped and the rest renormalised (`unmapped="drop"`), as the ScanNet
+  loader ignores those labels (`IGNORE_LABEL`).
+
+  Args:
+    target: "scannet12" (`SCANNET_CLASS_NAMES`, by `NYU40_TABLE`) or "scannet20"
+      (`SCANNET20_CLASS_NAMES`).
+    unannotated: the network has 41 outputs, index = NYU40 id, 0 = unannotated (default);
+      False: 40 outputs, ids 1 ... 40 at indices 0 ... 39.
+
+  Returns:
+    A `ClassMap` with the NYU40 names as source classes.
+  """
+  if target == "scannet12":
+    table = {nyu_id: name for nyu_id, _, name in NYU40_TABLE}
+    targets = SCANNET_CLASS_NAMES
+  elif target == "scannet20":
+    table = {nyu_id: name for nyu_id, name in SCANNET20_TABLE}
+    targets = SCANNET20_CLASS_NAMES
+  else:
+    raise ValueError(f"target must be 'scannet12' or 'scannet20'; got {target!r}")
+  first = 0 if unannotated else 1
+  table = {NYU40_CLASS_NAMES[i]: table.get(i) for i in range(first, len(NYU40_CLASS_NAMES))}
+  return ClassMap.from_table(table, source_classes=NYU40_CLASS_NAMES[first:],
+                             target_classes=targets, unmapped="drop")
+
+
+def class_map_path(name: str) -> pathlib.Path:
+  """The shipped class map file `name` (one of `CLASS_MAPS`), for `ClassMap.from_file`."""
+  if name not in CLASS_MAPS:
+    raise ValueError(f"no shipped class map {name!r}; the shipped ones are {list(CLASS_MAPS)}")
+  return pathlib.Path(__file__).resolve().parent / "class_maps" / f"{name}.json"
 
 
 def colorize(labels: np.ndarray, colors: np.ndarray) -> np.ndarray:

@@ -20,6 +20,7 @@ import jaxfusion as jf
 from jaxfusion import datasets
 from jaxfusion import io
 from jaxfusion import metrics
+from jaxfusion.mapper import Mapper
 from jaxfusion.lab import config as config_lib
 from jaxfusion.lab import figures
 from jaxfusion.lab import flags
@@ -28,20 +29,19 @@ from jaxfusion.lab import reports
 
 
 def fuse_with_rule(sequence, predictions: dict, rule, config: config_lib.RunConfig):
-  """Fuses a whole sequence with one rule (`fuse_sequence`); returns the final MapState.
+  """Fuses a whole sequence with one rule; returns the final MapState.
 
   The robust rules read the MC moments (`mean`, `var`), the baselines the dropout-off pass
-  (`det`).
+  (`det`). The map starts at `config.capacity` and grows rather than drop a voxel (`Mapper`).
   """
-  num_classes = predictions["mean"].shape[-1]
-  state = jf.init_map(capacity=config.capacity, num_classes=num_classes,
-                      voxel_size=config.voxel_size, rule=rule)
+  mapper = Mapper(rule, num_classes=predictions["mean"].shape[-1],
+                  voxel_size=config.voxel_size, capacity=config.capacity)
   robust = rule.name in config_lib.ROBUST_RULES
   frames = jf.Frame(np.asarray(sequence.depth, np.float32),
                     np.asarray(sequence.T_world_cam, np.float32),
                     predictions["mean"] if robust else predictions["det"],
                     predictions["var"] if robust else None)
-  return jf.fuse_sequence(state, frames, sequence.camera, rule)
+  return mapper.fuse_sequence(frames, sequence.camera)
 
 
 def format_table(results: dict, class_names: Sequence[str]) -> str:

@@ -72,10 +72,15 @@ class FrontEnd:
     return np.asarray(self._models.deterministic_probs(self.model.graphdef, self.model.params,
                                                        image))
 
+  def mc_samples(self, image: np.ndarray, *, num_samples: int, key) -> jax.Array:
+    """`(H, W, 3) uint8` → `(M, H, W, K) float32` MC-dropout softmax samples (the ones `mc`
+    takes the moments of, for the same key)."""
+    return self._models.mc_samples(self.model.graphdef, self.model.params, key, image,
+                                   num_samples=num_samples)
+
   def mc(self, image: np.ndarray, *, num_samples: int, key) -> tuple:
     """`(H, W, 3) uint8` → MC-dropout `(mean, var)`, each `(H, W, K)`, from M samples."""
-    samples = self._models.mc_samples(self.model.graphdef, self.model.params, key, image,
-                                      num_samples=num_samples)
+    samples = self.mc_samples(image, num_samples=num_samples, key=key)
     mean, var = sources.mc_moments(samples)
     return np.asarray(mean), np.asarray(var)
 

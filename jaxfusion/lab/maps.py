@@ -20,27 +20,77 @@ from jaxfusion.lab import frontend
 RUN_CHUNK = 16
 
 
-def _predictions(seq, args):
-  """Per-frame `(probs, var)` from precomputed files or a network (var None with M = 1)."""
+def _class_map(args):
+  """The `--class-map` (a file, or the name of a shipped one), or None."""
+  if not args.class_map:
+    return None
+  path = args.class_map
+  if not os.path.exists(path) and path in datasets.classes.CLASS_MAPS:
+    path = datasets.classes.class_map_path(path)
+  elif not os.path.exists(path):
+    raise FileNotFoundError(f"--class-map: no such file {path!r} (the shipped maps: "
+                            f"{', '.join(datasets.classes.CLASS_MAPS)})")
+  try:
+    return jf.ClassMap.from_file(path, unmapped=args.unmapped)
+  except ValueError as e:
+    raise ValueError(f"--class-map {e}") from None
+
+
+def _index_names(names) -> bool:
+  """Names that only number the classes ("0", "1", ...): a class map given by counts."""
+  return tuple(names) == tuple(str(i) for i in range(len(names)))
+
+
+def _check_source_classes(class_map, num_classes: int, what: str, names=None) -> None:
+  if num_classes != class_map.num_source_classes:
+    raise ValueError(f"--class-map maps {class_map.num_source_classes} source classes but "
+                     f"{what} {num_classes} classes")
+  if names is not None and not _index_names(class_map.source_classes) and (
+      tuple(names) != tuple(class_map.source_classes)):
+    raise ValueError(f"--class-map: its source classes {list(class_map.source_classes)} are "
+                     f"not the network's {list(names)} (same classes, same order)")
+
+
+def _predictions(seq, args, class_map=None):
+  """Per-frame `(probs, var)` from precomputed files or a network (var None with M = 1),
+  remapped by `class_map` (samples before their moments, where there are samples)."""
   import jax  # pylint: disable=import-outside-toplevel
+  remap = jax.jit(jf.ClassMap.remap)
+  moments = jax.jit(lambda cm, samples: jf.mc_moments(cm.remap_samples(samples)))
   if args.predictions:
     source = jf.sources.precomputed_source(args.predictions)
     if len(source) != len(seq):
       raise ValueError(f"--predictions has {len(source)} frames but the data has {len(seq)}")
     for t in range(len(seq)):
-      pred = source.predict(None, None, index=t)
-      yield np.asarray(pred.probs), None if pred.var is None else np.asarray(pred.var)
+      pred = source.predict(None, None, index=t)       # reads and checks the file
+      probs, var = pred
+      if class_map is not None:
+        _check_source_classes(class_map, probs.shape[-1], f"--predictions {source.files[t]} has")
+        with np.load(source.files[t]) as data:
+          samples = data["samples"] if "samples" in data.files else None
+        probs, var = (moments(class_map, samples) if samples is not None else
+                      remap(class_map, probs, var))
+      yield np.asarray(probs), None if var is None else np.asarray(var)
     return
   net = frontend.FrontEnd(args.checkpoint, class_names=None)
-  if len(net.class_names) != len(seq.class_names) and seq.labels is not None:
+  if class_map is not None:
+    _check_source_classes(class_map, len(net.class_names), "the network has",
+                          names=net.class_names)
+  elif len(net.class_names) != len(seq.class_names) and seq.labels is not None:
     tqdm.write(f"note: the network has {len(net.class_names)} classes and the data "
                f"{len(seq.class_names)}; the map will not be scored")
   key = jax.random.PRNGKey(args.mc_seed)
   for t in range(len(seq)):
     if args.num_samples > 1:
-      yield net.mc(seq.rgb[t], num_samples=args.num_samples, key=jax.random.fold_in(key, t))
+      key_t = jax.random.fold_in(key, t)
+      if class_map is None:
+        yield net.mc(seq.rgb[t], num_samples=args.num_samples, key=key_t)
+      else:
+        samples = net.mc_samples(seq.rgb[t], num_samples=args.num_samples, key=key_t)
+        yield tuple(np.asarray(a) for a in moments(class_map, samples))
     else:
-      yield net.deterministic(seq.rgb[t]), None
+      probs = net.deterministic(seq.rgb[t])
+      yield (probs if class_map is None else np.asarray(remap(class_map, probs)[0])), None
 
 
 def _chunks(seq, predictions, size):
@@ -73,29 +123,42 @@ def run_command(args: argparse.Namespace) -> int:
     spec = datasets.parse_spec(args.data)
   except ValueError as e:
     raise ValueError(f"--data: {e}") from None
+  class_map = _class_map(args)
   seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height, width=args.width,
                            layout_seed=flags.one_layout_seed(args), stride=args.stride)
-  state, num_classes = None, None
+  mapper, num_classes = None, None
   with tqdm(total=len(seq), desc="fusing") as bar:
-    for count, frames in _chunks(seq, _predictions(seq, args), RUN_CHUNK):
-      if state is None:
+    for count, frames in _chunks(seq, _predictions(seq, args, class_map), RUN_CHUNK):
+      if mapper is None:
         num_classes = frames.probs.shape[-1]
-        state = jf.init_map(capacity=args.capacity, num_classes=num_classes,
-                            voxel_size=args.voxel_size, rule=rule)
-      state = jf.fuse_sequence(state, frames, seq.camera, rule)
+        mapper = jf.Mapper(rule, num_classes=num_classes, voxel_size=args.voxel_size,
+                           capacity=args.capacity)
+      mapper.fuse_sequence(frames, seq.camera)
       bar.update(count)
+  state = mapper.state
+  for frames_done, old, new in mapper.growths:
+    tqdm.write(f"the map grew from {old} to {new} slots after {frames_done} frames")
   voxels = jf.read_map(state)
   os.makedirs(args.out, exist_ok=True)
   stem = os.path.join(args.out, f"{seq.name}_{rule.name}")
   names = seq.class_names if len(seq.class_names) == num_classes else None
-  io.save_map(stem + ".npz", state, rule, class_names=names,
-              extra={"data": args.data, "sequence": seq.name}, poses=seq.T_world_cam,
-              camera=seq.camera, image_size=seq.image_size)
+  scored = names is not None
+  if class_map is not None and not _index_names(class_map.target_classes):
+    names = class_map.target_classes     # the map's classes: its palette, its saved names
+    scored = tuple(names) == tuple(seq.class_names)
+    if seq.labels is not None and not scored:
+      print(f"note: the class map's target classes are not the data's "
+            f"{list(seq.class_names)}; the map is not scored")
+  extra = {"data": args.data, "sequence": seq.name}
+  if class_map is not None:
+    extra["class_map"] = str(args.class_map)
+  io.save_map(stem + ".npz", state, rule, class_names=names, extra=extra,
+              poses=seq.T_world_cam, camera=seq.camera, image_size=seq.image_size)
   io.export_ply(stem + ".ply", voxels, voxel_size=args.voxel_size,
                 colors=datasets.palette(num_classes if names is None else names))
   print(f"map: {len(voxels['coords'])} voxels → {stem}.npz, {stem}.ply")
-  if seq.labels is not None and names is not None:
-    gt = datasets.gt_voxel_labels(seq, voxel_size=args.voxel_size, capacity=args.capacity)
+  if seq.labels is not None and scored:
+    gt = datasets.gt_voxel_labels(seq, voxel_size=args.voxel_size)
     gt_path = stem + "_gt.npz"
 
     def write(tmp):
@@ -157,6 +220,14 @@ def add_parser(subparsers) -> None:
   run.add_argument("--predictions", default=None,
                    help="folder of precomputed .npz predictions (one per frame) instead of the "
                         "shipped network")
+  run.add_argument("--class-map", default=None, metavar="FILE",
+                   help="remap the network's classes to the map's before fusion: a .json or "
+                        ".csv file (network class → map class; jaxfusion.classmap has the "
+                        "format) or a shipped map: " + ", ".join(datasets.classes.CLASS_MAPS))
+  run.add_argument("--unmapped", choices=("other", "drop"), default=None,
+                   help="with --class-map: classes with no target go to the 'other' class or "
+                        "are dropped and the rest renormalised (default: the file's choice, "
+                        "else 'other' when the map has an 'other' class)")
   flags.add_checkpoint(run)
   run.add_argument("--num-samples", type=int, default=32, help="MC dropout samples (1 = off)")
   run.add_argument("--frames", type=int, default=40,
@@ -164,7 +235,8 @@ def add_parser(subparsers) -> None:
   run.add_argument("--stride", type=int, default=1, help="keep every N-th frame (folders)")
   run.add_argument("--height", type=int, default=120, help="image rows (embedded sequences)")
   run.add_argument("--width", type=int, default=160, help="image columns (embedded sequences)")
-  run.add_argument("--capacity", type=int, default=2**18)
+  run.add_argument("--capacity", type=int, default=2**16,
+                   help="initial map capacity (a power of two); the map grows as needed")
   flags.add_layout_seeds(run, default=[0], help_suffix=" (one; default 0)")
   flags.add_mc_seed(run, aliases=("--seed",))
   run.add_argument("--out", default="outputs/run")
