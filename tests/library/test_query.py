@@ -381,7 +381,7 @@ def test_the_readme_information_gain_example_runs_on_the_quick_start_map():
   text = (ROOT / "README.md").read_text(encoding="utf-8")
   scope = {}
   exec(_python_block(text, "## Quick start"), scope)     # pylint: disable=exec-used
-  exec(_python_block(text, "## Queries"), scope)         # pylint: disable=exec-used
+  exec(_python_block(text, "**Queries.**"), scope)       # pylint: disable=exec-used
   state, gain = scope["state"], scope["gain"]
   q = jf.query(state, scope["p_world"])
   seen = float(q.found.mean())
