@@ -245,8 +245,11 @@ class ClassMap:
       raise ValueError(f"{path}: a class map is a .json or .csv file")
     if not path.is_file():
       raise FileNotFoundError(f"no class map file {path}")
-    text = path.read_text(encoding="utf-8")
     try:
+      try:
+        text = path.read_text(encoding="utf-8")
+      except UnicodeDecodeError as e:
+        raise ValueError(f"not a text file ({e})") from None
       if path.suffix.lower() == ".json":
         try:
           spec = json.loads(text, object_pairs_hook=_no_duplicate_keys)
@@ -257,7 +260,7 @@ class ClassMap:
       targets = _first_appearance(pairs)
       return cls.from_table(pairs, source_classes=[p[0] for p in pairs],
                             target_classes=targets, unmapped=unmapped)
-    except ValueError as e:
+    except (ValueError, csv.Error, RecursionError) as e:
       raise ValueError(f"{path}: {e}") from None
 
   def to_dict(self) -> dict:

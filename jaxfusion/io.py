@@ -1,13 +1,20 @@
 """Maps on disk: bit-exact save/load (`.npz` with metadata) and class-coloured PLY export.
 
 Writes go to a temporary file that is renamed into place, so an interrupted run never leaves a
-half-written file behind.
+half-written file behind. Reads go through `read_npz`, which reads every array eagerly, checks
+each one's zip CRC and turns any way a file can be broken (empty, truncated, a flipped byte,
+another kind of file, pickled objects) into one `BadFileError` that names the file.
 """
 
+import hashlib
+import io as _bytes_io
 import json
 import os
+import struct
 import tempfile
-from typing import Optional, Sequence
+import zipfile
+import zlib
+from typing import Iterable, Optional, Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +23,114 @@ from jaxfusion import rules as rules_lib
 from jaxfusion.state import MapState
 
 FORMAT_VERSION = 1
+
+
+class BadFileError(ValueError):
+  """A file exists but is corrupt or holds the wrong kind of data (the message names it)."""
+
+
+# What reading a damaged archive can raise besides OSError/ValueError: zip and zlib errors,
+# numpy's header parser (SyntaxError, struct), and absurd sizes from a flipped length byte.
+_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, IndexError, TypeError, AttributeError,
+                NotImplementedError, SyntaxError, OverflowError, MemoryError, struct.error,
+                zipfile.BadZipFile, zlib.error)
+
+
+def _npz_problem(path: str, error: BaseException) -> str:
+  """A short reason why `path` could not be read as an `.npz` archive."""
+  try:
+    with open(path, "rb") as f:
+      head = f.read(8)
+  except OSError:
+    head = b""
+  if not head:
+    return "empty file"
+  if head.startswith(b"\x93NUMPY"):
+    return "a .npy array, not an .npz archive"
+  if isinstance(error, zipfile.BadZipFile) and not head.startswith(b"PK"):
+    return f"not an .npz archive: it starts with {head[:4]!r}"
+  if isinstance(error, (zipfile.BadZipFile, zlib.error, EOFError)):
+    return f"truncated or damaged: {error}"
+  return f"{type(error).__name__}: {error}"
+
+
+def read_npz(path: str, *, what: str, required: Iterable[str] = ()) -> dict:
+  """Reads every array of an `.npz` archive eagerly, with its CRC checked.
+
+  Args:
+    path: the file.
+    what: what the file should be, for messages (e.g. "jaxfusion map file").
+    required: names of arrays the file must hold.
+
+  Returns:
+    `{name: ndarray}` of all arrays in the file.
+
+  Raises:
+    FileNotFoundError: no file at `path`.
+    BadFileError: the file is empty, truncated, damaged, not an `.npz`, holds pickled
+      objects or lacks a required array; the message is "PATH is not a WHAT (reason)".
+  """
+  path = os.fspath(path)
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"no {what} at {path}")
+  arrays = {}
+  try:
+    with zipfile.ZipFile(path) as zf:
+      for name in zf.namelist():
+        if not name.endswith(".npy"):
+          raise BadFileError(f"{name!r} is not an array")
+        # zf.read checks the member's CRC-32: a flipped byte never reads back as data.
+        buffer = _bytes_io.BytesIO(zf.read(name))
+        arrays[name[:-4]] = np.lib.format.read_array(buffer, allow_pickle=False)
+  except _READ_ERRORS as e:
+    raise BadFileError(f"{path} is not a {what} ({_npz_problem(path, e)})") from e
+  missing = [k for k in required if k not in arrays]
+  if missing:
+    raise BadFileError(f"{path} is not a {what} (it lacks {missing}; it holds "
+                       f"{sorted(arrays)[:8]})")
+  return arrays
+
+
+def check_array(path: str, what: str, name: str, array: np.ndarray, shape, dtype) -> None:
+  """Refuses an array read from `path` whose shape or dtype is not the expected one.
+
+  Args:
+    path, what: for the message, as in `read_npz`.
+    name: the array's name in the file.
+    array: the array.
+    shape: expected shape; None entries match any size.
+    dtype: expected dtype.
+
+  Raises:
+    BadFileError: "PATH is not a WHAT ('NAME' is SHAPE DTYPE, expected SHAPE DTYPE)".
+  """
+  ok = array.dtype == np.dtype(dtype) and array.ndim == len(shape) and all(
+      want is None or int(want) == got for want, got in zip(shape, array.shape))
+  if not ok:
+    want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+    raise BadFileError(f"{path} is not a {what} ({name!r} is {array.shape} {array.dtype}, "
+                       f"expected {want} {np.dtype(dtype)})")
+
+
+def read_json_array(path: str, what: str, array: np.ndarray) -> dict:
+  """The JSON object stored as `uint8` bytes in an `.npz` (a map's `metadata`, a cache's meta)."""
+  try:
+    value = json.loads(bytes(np.asarray(array, np.uint8)).decode())
+  except (ValueError, TypeError) as e:
+    raise BadFileError(f"{path} is not a {what} (its metadata is not JSON: {e})") from e
+  if not isinstance(value, dict):
+    raise BadFileError(f"{path} is not a {what} (its metadata is not a JSON object)")
+  return value
+
+
+def array_digest(arrays: dict) -> str:
+  """SHA-256 (hex) of named arrays: names, dtypes, shapes and bytes, in name order."""
+  h = hashlib.sha256()
+  for name in sorted(arrays):
+    a = np.ascontiguousarray(arrays[name])
+    h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+    h.update(a.tobytes())
+  return h.hexdigest()
 
 
 def atomic_write(path: str, write) -> None:
@@ -132,22 +247,47 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
   atomic_write(path, write)
 
 
+MAP_FILE = "jaxfusion map file"
+
+
 def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
-  """Loads a map saved by `save_map`: `(state, rule, metadata)`, bit-exact."""
+  """Loads a map saved by `save_map`: `(state, rule, metadata)`, bit-exact.
+
+  Raises:
+    FileNotFoundError: no file at `path`.
+    BadFileError: (a `ValueError`) the file is damaged, is not a map, or holds arrays whose
+      shapes or dtypes disagree with its metadata; the message names the file.
+  """
   if not os.path.exists(path):
     raise FileNotFoundError(f"no map file at {path}")
-  try:
-    data = np.load(path)
-    meta = json.loads(bytes(data["metadata"]).decode())
-  except (OSError, ValueError, KeyError) as e:
-    raise ValueError(f"{path} is not a jaxfusion map file ({e})") from e
+  data = read_npz(path, what=MAP_FILE, required=("metadata", "voxel_size"))
+  meta = read_json_array(path, MAP_FILE, data["metadata"])
   if meta.get("format_version") != FORMAT_VERSION:
-    raise ValueError(f"{path}: unsupported map format version {meta.get('format_version')}")
+    raise BadFileError(f"{path}: unsupported map format version {meta.get('format_version')}")
+  check_array(path, MAP_FILE, "voxel_size", data["voxel_size"], (), np.float32)
   from jaxfusion.state import init_map   # deferred: keeps io importable on its own
-  rule = rule_from_metadata(meta["rule"])
-  state = init_map(capacity=meta["capacity"], num_classes=meta["num_classes"],
-                   voxel_size=float(data["voxel_size"]), rule=rule,
-                   max_probes=meta["max_probes"])
+  try:
+    rule = rule_from_metadata(meta["rule"])
+    state = init_map(capacity=int(meta["capacity"]), num_classes=int(meta["num_classes"]),
+                     voxel_size=float(data["voxel_size"]), rule=rule,
+                     max_probes=int(meta["max_probes"]))
+    names = meta.get("class_names")
+    if names is not None and len(names) != state.num_classes:
+      raise ValueError(f"{len(names)} class names for {state.num_classes} classes")
+  except (KeyError, TypeError, ValueError, AttributeError) as e:
+    raise BadFileError(f"{path} is not a {MAP_FILE} (bad metadata: {type(e).__name__}: {e})"
+                       ) from e
+  fields = ("keys", "hits", "claims", "num_occupied", "num_dropped")
+  expected = {name: np.asarray(getattr(state, name)) for name in fields}
+  expected.update({f"rows/{name}": np.asarray(v) for name, v in state.rows.items()})
+  stored_rows = {k for k in data if k.startswith("rows/")}
+  if stored_rows != {k for k in expected if k.startswith("rows/")}:
+    raise BadFileError(f"{path} is not a {MAP_FILE} (rows {sorted(stored_rows)} do not match "
+                       f"rule {rule.name!r})")
+  for name, template in expected.items():
+    if name not in data:
+      raise BadFileError(f"{path} is not a {MAP_FILE} (it lacks {name!r})")
+    check_array(path, MAP_FILE, name, data[name], template.shape, template.dtype)
   rows = {name: jnp.asarray(data[f"rows/{name}"]) for name in state.rows}
   state = state.replace(
       keys=jnp.asarray(data["keys"]), hits=jnp.asarray(data["hits"]), rows=rows,
@@ -166,18 +306,27 @@ def load_trajectory(path: str) -> Optional[dict]:
   Returns:
     dict with `T_world_cam (T, 4, 4) float32` camera-to-world poses and `camera`: a dict of
     `fx, fy, cx, cy, height, width`, or None when the intrinsics were not saved.
+
+  Raises:
+    FileNotFoundError / BadFileError: as `load_map`; also for poses that are not `(T, 4, 4)`
+      finite float32 or a camera that is not a dict of numbers.
   """
   if not os.path.exists(path):
     raise FileNotFoundError(f"no map file at {path}")
-  try:
-    with np.load(path) as data:
-      meta = json.loads(bytes(data["metadata"]).decode())
-      poses = np.asarray(data["poses"], np.float32) if "poses" in data.files else None
-  except (OSError, ValueError, KeyError) as e:
-    raise ValueError(f"{path} is not a jaxfusion map file ({e})") from e
-  if poses is None:
+  data = read_npz(path, what=MAP_FILE, required=("metadata",))
+  meta = read_json_array(path, MAP_FILE, data["metadata"])
+  if "poses" not in data:
     return None
-  return {"T_world_cam": poses, "camera": meta.get("camera")}
+  poses = data["poses"]
+  check_array(path, MAP_FILE, "poses", poses, (None, 4, 4), np.float32)
+  if len(poses) == 0 or not np.all(np.isfinite(poses)):
+    raise BadFileError(f"{path} is not a {MAP_FILE} (its poses are empty or not finite)")
+  camera = meta.get("camera")
+  keys = ("fx", "fy", "cx", "cy", "height", "width")
+  if camera is not None and not (isinstance(camera, dict) and all(
+      isinstance(camera.get(k), (int, float)) for k in keys)):
+    raise BadFileError(f"{path} is not a {MAP_FILE} (its camera is not {list(keys)})")
+  return {"T_world_cam": poses, "camera": camera}
 
 
 def default_palette(num_classes: int) -> np.ndarray:

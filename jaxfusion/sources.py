@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxfusion import io
 from jaxfusion.classmap import ClassMap  # noqa: F401  (re-exported: sources.ClassMap)
 
 
@@ -281,9 +282,10 @@ _PROB_TOL = 1e-3
 def _as_float(name, array, path):
   array = np.asarray(array)
   if not np.issubdtype(array.dtype, np.floating):
-    raise TypeError(f"{path}: '{name}' must be float probabilities; got dtype {array.dtype}")
+    raise io.BadFileError(f"{path}: '{name}' must be float probabilities; got dtype "
+                          f"{array.dtype}")
   if not np.all(np.isfinite(array)):
-    raise ValueError(f"{path}: '{name}' has NaN or infinite values")
+    raise io.BadFileError(f"{path}: '{name}' has NaN or infinite values")
   return array.astype(np.float32)
 
 
@@ -336,8 +338,7 @@ class PrecomputedSource:
     if not -len(self.files) <= index < len(self.files):
       raise IndexError(f"frame {index} out of range: {len(self.files)} precomputed frames")
     path = self.files[index]
-    with np.load(path) as data:
-      contents = {k: data[k] for k in data.files}
+    contents = io.read_npz(str(path), what="precomputed prediction file")
     if "samples" in contents and "mean" in contents:
       raise ValueError(f"{path}: holds both 'samples' and 'mean'; keep one")
     if "samples" in contents:
@@ -418,6 +419,6 @@ def save_prediction(path: str | os.PathLike, *, mean=None, var=None, samples=Non
   path = pathlib.Path(path)
   if path.suffix != ".npz":
     raise ValueError(f"precomputed frames are .npz files; got {path}")
-  path.parent.mkdir(parents=True, exist_ok=True)
-  np.savez(path, **{k: np.asarray(v, np.float32) for k, v in arrays.items()})
+  arrays = {k: np.asarray(v, np.float32) for k, v in arrays.items()}
+  io.atomic_write(str(path), lambda tmp: np.savez(tmp, **arrays))
   return path

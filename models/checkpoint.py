@@ -1,11 +1,12 @@
 """Saving and loading `SegNet` checkpoints (one msgpack file, `flax.serialization`).
 
 A checkpoint is a single `.msgpack` file holding a format tag, JSON metadata (the
-architecture `SegNetConfig`, the class names in label order, and a free-form training record)
-and the parameters as a flat `{path: ndarray}` map. Loading rebuilds the architecture from the
-stored config, checks every parameter's path, shape and dtype against it, and refuses a
-checkpoint whose class list or architecture differs from what the caller expects, with a
-message that says what to run. Round trips are bit-exact.
+architecture `SegNetConfig`, the class names in label order, and a free-form training record),
+the parameters as a flat `{path: ndarray}` map, and a digest of both (msgpack has no checksum of
+its own; checkpoints written before the digest load without one). Loading rebuilds the
+architecture from the stored config, checks every parameter's path, shape and dtype against it,
+and refuses a checkpoint whose class list or architecture differs from what the caller expects,
+with a message that says what to run. Round trips are bit-exact.
 """
 
 import dataclasses
@@ -98,10 +99,16 @@ def save(path: str | os.PathLike, params: nnx.State, *, config: net.SegNetConfig
       "metadata": json.dumps(metadata, sort_keys=True),
       "params": flatten_params(params),
   }
+  payload["digest"] = _digest(payload["metadata"], payload["params"])
   path = pathlib.Path(path)
   data = serialization.msgpack_serialize(payload)
   jf_io.atomic_write(str(path), lambda tmp: pathlib.Path(tmp).write_bytes(data))
   return path
+
+
+def _digest(metadata: str, flat: dict[str, np.ndarray]) -> str:
+  """SHA-256 of a checkpoint's metadata and parameters: msgpack itself has no checksum."""
+  return jf_io.array_digest({"metadata": np.frombuffer(metadata.encode(), np.uint8), **flat})
 
 
 def _check_params(flat: dict[str, np.ndarray], config: net.SegNetConfig, *, source: str):
@@ -149,6 +156,9 @@ def load(path: str | os.PathLike, *, class_names: Sequence[str] | None = None,
     fmt, version = payload["format"], payload["format_version"]
     metadata = json.loads(payload["metadata"])
     flat = {k: np.asarray(v) for k, v in payload["params"].items()}
+    # Checkpoints written before the digest was added have none; they still load.
+    if "digest" in payload and payload["digest"] != _digest(payload["metadata"], flat):
+      raise ValueError("its parameters or metadata do not match their digest (damaged)")
   except Exception as e:  # Any parse failure means the file is not one of ours.
     raise CheckpointError(
         f"{path} is not a readable jaxfusion_models checkpoint ({type(e).__name__}: {e}). "
@@ -157,8 +167,18 @@ def load(path: str | os.PathLike, *, class_names: Sequence[str] | None = None,
     raise CheckpointError(
         f"{path} has format {fmt!r} v{version}; this code reads {FORMAT!r} v{FORMAT_VERSION}. "
         f"Re-create it with `{TRAIN_COMMAND} --out {path}`.")
-  stored_config = net.SegNetConfig.from_dict(metadata["config"])
-  stored_names = tuple(metadata["class_names"])
+  try:
+    stored_config = net.SegNetConfig.from_dict(metadata["config"])
+    stored_names = tuple(str(c) for c in metadata["class_names"])
+    if not isinstance(metadata.get("record", {}), dict):
+      raise ValueError("its training record is not a JSON object")
+    if len(stored_names) != stored_config.num_classes:
+      raise ValueError(f"{len(stored_names)} class names for {stored_config.num_classes} "
+                       "classes")
+  except Exception as e:  # A damaged metadata block: any failure means it is not ours.
+    raise CheckpointError(
+        f"{path} is not a readable jaxfusion_models checkpoint (bad metadata: "
+        f"{type(e).__name__}: {e}). Re-create it with `{TRAIN_COMMAND} --out {path}`.") from e
   if class_names is not None and tuple(class_names) != stored_names:
     raise CheckpointError(
         f"{path} was trained for classes {stored_names}, but {tuple(class_names)} were "

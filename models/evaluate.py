@@ -331,7 +331,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   args = p.parse_args(argv)
 
   from . import train  # The data helpers live with the training command.
-  model, height, width = load_with_training_size(args.checkpoint, args.height, args.width)
+  try:
+    model, height, width = load_with_training_size(args.checkpoint, args.height, args.width)
+  except (ValueError, FileNotFoundError) as e:   # a CheckpointError is a ValueError
+    p.error(str(e))
   seed = args.seed if args.seed is not None else model.metadata.get("record", {}).get("seed", 0)
   key = jax.random.key(seed + 7)
   results = {"checkpoint": args.checkpoint, "height": height, "width": width,

@@ -824,7 +824,42 @@ def config_from_recipe(recipe: dict[str, Any]) -> Config:
   except KeyError as e:
     raise ValueError(f"the recipe lacks field {e.args[0]!r}; pass a segnet.json written by "
                      "this command") from None
+  except (TypeError, AttributeError) as e:
+    raise ValueError(f"the recipe has a malformed field ({type(e).__name__}: {e}); pass a "
+                     "segnet.json written by this command") from None
   return dataclasses.replace(replace_fields(Config(), values), **whole)
+
+
+def read_recipe(path: str | pathlib.Path) -> dict[str, Any]:
+  """The JSON document of a recipe file (a run's record, e.g. `segnet.json`).
+
+  Raises:
+    ValueError: no such file, not UTF-8 JSON, or not a JSON object; the message names the file.
+  """
+  path = pathlib.Path(path)
+  if not path.is_file():
+    raise ValueError(f"--recipe: no such file {str(path)!r}")
+  try:
+    recipe = json.loads(path.read_bytes().decode("utf-8"))
+  except (OSError, ValueError, RecursionError) as e:
+    raise ValueError(f"--recipe {path} is not a JSON recipe ({type(e).__name__}: {e})") from None
+  if not isinstance(recipe, dict):
+    raise ValueError(f"--recipe {path} is not a JSON recipe (a JSON object with 'config' and "
+                     "'record')")
+  return recipe
+
+
+def load_recipe(path: str | pathlib.Path) -> Config:
+  """The configuration of a recipe file: `config_from_recipe(read_recipe(path))`.
+
+  Raises:
+    ValueError: as `read_recipe` and `config_from_recipe`; the message names the file.
+  """
+  recipe = read_recipe(path)
+  try:
+    return config_from_recipe(recipe)
+  except ValueError as e:
+    raise ValueError(f"--recipe {path}: {e}") from None
 
 
 def config_to_recipe(config: Config) -> dict[str, Any]:
@@ -941,7 +976,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
   config = replace_fields(Config(), QUICK) if args.quick else Config()
   try:
     if args.recipe is not None:
-      config = config_from_recipe(json.loads(pathlib.Path(args.recipe).read_text()))
+      config = load_recipe(args.recipe)
     given = {leaf.name: getattr(args, leaf.name) for leaf in _leaves()
              if hasattr(args, leaf.name)}
     config = replace_fields(config, given)

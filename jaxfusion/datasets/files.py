@@ -10,9 +10,7 @@ import warnings
 
 import numpy as np
 
-
-class BadFileError(ValueError):
-  """A file exists but is corrupt or holds the wrong kind of data."""
+from jaxfusion.io import BadFileError  # pylint: disable=unused-import  (re-exported)
 
 
 def _require(path: str) -> None:
@@ -20,11 +18,24 @@ def _require(path: str) -> None:
     raise FileNotFoundError(f"missing file: {path}")
 
 
+def _decode(path: str, flags):
+  """Decodes an image file with OpenCV; None when it cannot. A JPEG must end with its EOI
+  marker: OpenCV decodes a truncated one into a partly grey image without an error."""
+  import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where it is used)
+  with open(path, "rb") as f:
+    data = f.read()
+  if data[:2] == b"\xff\xd8" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+    raise BadFileError(f"truncated JPEG image: {path}")
+  if not data:
+    return None
+  return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+
+
 def read_rgb(path: str) -> np.ndarray:
   """`(H, W, 3) uint8` RGB image from a JPEG/PNG file."""
   import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where it is used)
   _require(path)
-  img = cv2.imread(path, cv2.IMREAD_COLOR)
+  img = _decode(path, cv2.IMREAD_COLOR)
   if img is None:
     raise BadFileError(f"corrupt or unreadable image: {path}")
   return img[..., ::-1].copy()
@@ -34,7 +45,7 @@ def read_png16(path: str) -> np.ndarray:
   """`(H, W)` integer image (uint16 depth or label PNG) read without conversion."""
   import cv2  # pylint: disable=import-outside-toplevel
   _require(path)
-  img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  img = _decode(path, cv2.IMREAD_UNCHANGED)
   if img is None:
     raise BadFileError(f"corrupt or unreadable image: {path}")
   if img.ndim != 2:
@@ -65,7 +76,7 @@ def read_matrix(path: str, shape=None) -> np.ndarray:
   _require(path)
   try:
     m = np.loadtxt(path, dtype=np.float64, ndmin=2)
-  except ValueError as e:
+  except (ValueError, OSError) as e:
     raise BadFileError(f"cannot parse a matrix from {path}: {e}") from e
   if shape is not None and m.shape != tuple(shape):
     raise BadFileError(f"expected a {shape[0]}x{shape[1]} matrix in {path}; got {m.shape}")

@@ -61,15 +61,20 @@ def read_label_tsv(path: str) -> np.ndarray:
   if not os.path.isfile(path):
     raise FileNotFoundError(f"missing file: {path}")
   pairs = []
-  with open(path, newline="") as f:
-    reader = csv.DictReader(f, delimiter="\t")
-    if reader.fieldnames is None or not {"id", "nyu40id"} <= set(reader.fieldnames):
-      raise files.BadFileError(f"{path} lacks the 'id' and 'nyu40id' columns")
-    for row in reader:
-      try:
-        pairs.append((int(row["id"]), int(row["nyu40id"])))
-      except ValueError as e:
-        raise files.BadFileError(f"bad row in {path}: {row}") from e
+  try:
+    with open(path, newline="", encoding="utf-8") as f:
+      reader = csv.DictReader(f, delimiter="\t")
+      if reader.fieldnames is None or not {"id", "nyu40id"} <= set(reader.fieldnames):
+        raise files.BadFileError(f"{path} lacks the 'id' and 'nyu40id' columns")
+      for row in reader:
+        try:
+          pairs.append((int(row["id"]), int(row["nyu40id"])))
+        except (ValueError, TypeError) as e:
+          raise files.BadFileError(f"bad row in {path}: {row}") from e
+        if pairs[-1][0] < 0:
+          raise files.BadFileError(f"bad row in {path}: negative id in {row}")
+  except (UnicodeDecodeError, csv.Error) as e:
+    raise files.BadFileError(f"{path} is not a label table (tab-separated text): {e}") from e
   lut = np.zeros((max([r for r, _ in pairs], default=0) + 1,), np.int32)
   for raw, nyu in pairs:
     lut[raw] = nyu
@@ -81,6 +86,15 @@ def nyu40_to_classes(nyu40: np.ndarray) -> np.ndarray:
   nyu40 = np.asarray(nyu40, np.int64)
   ok = (nyu40 >= 0) & (nyu40 < len(NYU40_TO_SCANNET12))
   return np.where(ok, NYU40_TO_SCANNET12[np.where(ok, nyu40, 0)], IGNORE_LABEL).astype(np.int32)
+
+
+def _check_aspect(path: str, shape, depth_shape) -> None:
+  """Refuses a colour or label image whose aspect ratio is not the depth image's (within 5%):
+  resized to the depth size, another picture would otherwise pass as this frame's."""
+  aspect, depth_aspect = shape[1] / shape[0], depth_shape[1] / depth_shape[0]
+  if abs(aspect / depth_aspect - 1) > 0.05:
+    raise files.BadFileError(f"{path} is {shape[1]}x{shape[0]}, not the shape of its "
+                             f"{depth_shape[1]}x{depth_shape[0]} depth image")
 
 
 def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool = False,
@@ -163,11 +177,14 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
       if d.shape != size:
         raise files.BadFileError(f"depth {depth[i]} is {d.shape}, other frames are {size}")
       current = color[i]
-      rgb = cv2.resize(files.read_rgb(color[i]), (size[1], size[0]), interpolation=cv2.INTER_AREA)
+      colour = files.read_rgb(color[i])
+      _check_aspect(color[i], colour.shape[:2], size)
+      rgb = cv2.resize(colour, (size[1], size[0]), interpolation=cv2.INTER_AREA)
       lab = None
       if labels is not None:
         current = labels[i]
         raw = files.read_png16(labels[i]).astype(np.int64)
+        _check_aspect(labels[i], raw.shape, size)
         if raw_to_nyu is not None:
           raw = np.where(raw < len(raw_to_nyu), raw_to_nyu[np.minimum(raw, len(raw_to_nyu) - 1)],
                          0)

@@ -21,6 +21,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from jaxfusion import io
 from jaxfusion.camera import Camera
 
 FORMAT_VERSION = 1
@@ -167,7 +168,8 @@ class RGBDSequence:
         arrays["labels"] = frame.labels
       if frame.instances is not None:
         arrays["instances"] = frame.instances
-      np.savez_compressed(os.path.join(frames_dir, f"{i:06d}.npz"), **arrays)
+      io.atomic_write(os.path.join(frames_dir, f"{i:06d}.npz"),
+                      lambda tmp, arrays=arrays: np.savez_compressed(tmp, **arrays))
     meta = {
         "format_version": FORMAT_VERSION, "name": self.name,
         "class_names": list(self.class_names), "camera": dict(self.camera._asdict()),
@@ -175,8 +177,13 @@ class RGBDSequence:
         "has_labels": self.labels is not None, "has_instances": self.instances is not None,
         "info": self.info,
     }
-    with open(os.path.join(path, "meta.json"), "w") as f:
-      json.dump(meta, f, indent=1)
+
+    def write_meta(tmp):
+      with open(tmp, "w") as f:
+        json.dump(meta, f, indent=1)
+
+    # meta.json last: a save that breaks off leaves no folder that reads back as whole.
+    io.atomic_write(os.path.join(path, "meta.json"), write_meta)
     return path
 
   @classmethod
@@ -197,38 +204,41 @@ class RGBDSequence:
     if not os.path.isfile(meta_path):
       raise FileNotFoundError(f"not a saved sequence: {meta_path} is missing")
     try:
-      with open(meta_path) as f:
-        meta = json.load(f)
+      with open(meta_path, "rb") as f:
+        meta = json.loads(f.read().decode("utf-8"))
       camera = Camera(**{k: float(v) for k, v in meta["camera"].items()})
       num_frames = int(meta["num_frames"])
-    except (ValueError, KeyError, TypeError) as e:
-      raise ValueError(f"corrupt sequence metadata {meta_path}: {e}") from e
-    keys = ["rgb", "depth", "T_world_cam"]
-    keys += ["labels"] if meta.get("has_labels") else []
-    keys += ["instances"] if meta.get("has_instances") else []
+      h, w = (int(s) for s in meta["image_size"])
+      name, class_names = str(meta["name"]), tuple(str(c) for c in meta["class_names"])
+      if num_frames < 0 or h < 1 or w < 1:
+        raise ValueError(f"{num_frames} frames of {h}x{w} pixels")
+    except (ValueError, KeyError, TypeError, AttributeError, OSError) as e:
+      raise io.BadFileError(f"corrupt sequence metadata {meta_path}: {type(e).__name__}: {e}"
+                            ) from e
+    expected = {"rgb": ((h, w, 3), np.uint8), "depth": ((h, w), np.float32),
+                "T_world_cam": ((4, 4), np.float32)}
+    if meta.get("has_labels"):
+      expected["labels"] = ((h, w), np.int32)
+    if meta.get("has_instances"):
+      expected["instances"] = ((h, w), np.int32)
+    keys = list(expected)
     data = {k: [] for k in keys}
     for i in range(num_frames):
       frame_path = os.path.join(path, "frames", f"{i:06d}.npz")
       if not os.path.isfile(frame_path):
         raise FileNotFoundError(f"{frame_path} is missing ({meta_path} lists {num_frames} frames)")
-      try:
-        with np.load(frame_path) as z:
-          for k in keys:
-            data[k].append(z[k])
-      except (ValueError, KeyError, OSError, EOFError) as e:
-        raise ValueError(f"corrupt frame file {frame_path}: {e}") from e
+      z = io.read_npz(frame_path, what="frame file of a saved sequence", required=keys)
+      for k, (shape, dtype) in expected.items():
+        io.check_array(frame_path, "frame file of a saved sequence", k, z[k], shape, dtype)
+        data[k].append(z[k])
     if num_frames == 0:
-      h, w = meta["image_size"]
       empty = {"rgb": np.zeros((0, h, w, 3), np.uint8), "depth": np.zeros((0, h, w), np.float32),
                "T_world_cam": np.zeros((0, 4, 4), np.float32),
                "labels": np.zeros((0, h, w), np.int32), "instances": np.zeros((0, h, w), np.int32)}
       stacked = {k: empty[k] for k in keys}
     else:
-      try:
-        stacked = {k: np.stack(v) for k, v in data.items()}
-      except ValueError as e:
-        raise ValueError(f"frames in {path} have inconsistent shapes: {e}") from e
-    return cls(name=meta["name"], class_names=tuple(meta["class_names"]), camera=camera,
+      stacked = {k: np.stack(v) for k, v in data.items()}
+    return cls(name=name, class_names=class_names, camera=camera,
                rgb=stacked["rgb"], depth=stacked["depth"], T_world_cam=stacked["T_world_cam"],
                labels=stacked.get("labels"), instances=stacked.get("instances"),
                info=meta.get("info", {}))

@@ -38,18 +38,26 @@ def read_list(path: str, num_fields: int) -> list:
   if not os.path.isfile(path):
     raise FileNotFoundError(f"missing file: {path}")
   rows = []
-  with open(path) as f:
-    for n, line in enumerate(f, 1):
-      line = line.strip()
-      if not line or line.startswith("#"):
-        continue
-      parts = line.replace(",", " ").split()
-      if len(parts) != num_fields:
-        raise files.BadFileError(f"{path}:{n}: expected {num_fields} fields; got {line!r}")
-      try:
-        rows.append((float(parts[0]),) + tuple(parts[1:]))
-      except ValueError as e:
-        raise files.BadFileError(f"{path}:{n}: bad timestamp in {line!r}") from e
+  try:
+    with open(path, encoding="utf-8") as f:
+      for n, line in enumerate(f, 1):
+        if not line.endswith("\n") and line.strip() and not line.lstrip().startswith("#"):
+          # The benchmark's lists end in a newline: without one the last row may be cut short
+          # (a number losing digits still parses).
+          raise files.BadFileError(f"{path}:{n}: the last line has no newline; the file may "
+                                   "be cut off (add the newline if it is whole)")
+        line = line.strip()
+        if not line or line.startswith("#"):
+          continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != num_fields:
+          raise files.BadFileError(f"{path}:{n}: expected {num_fields} fields; got {line!r}")
+        try:
+          rows.append((float(parts[0]),) + tuple(parts[1:]))
+        except ValueError as e:
+          raise files.BadFileError(f"{path}:{n}: bad timestamp in {line!r}") from e
+  except UnicodeDecodeError as e:
+    raise files.BadFileError(f"{path} is not a TUM list (text): {e}") from e
   return rows
 
 
@@ -98,8 +106,10 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
   gt_path = os.path.join(path, "groundtruth.txt")
   gt_rows = read_list(gt_path, 8)
   if not rgb_rows or not depth_rows or not gt_rows:
-    raise ValueError(f"empty TUM list in {path} (rgb: {len(rgb_rows)}, depth: {len(depth_rows)}, "
-                     f"groundtruth: {len(gt_rows)})")
+    empty = next(name for name, rows in (("rgb.txt", rgb_rows), ("depth.txt", depth_rows),
+                                         ("groundtruth.txt", gt_rows)) if not rows)
+    raise ValueError(f"empty TUM list {os.path.join(path, empty)} (rgb: {len(rgb_rows)}, "
+                     f"depth: {len(depth_rows)}, groundtruth: {len(gt_rows)})")
   rgb_rows.sort()
   gt_rows.sort()
   rgb_t = np.array([r[0] for r in rgb_rows])
@@ -121,13 +131,13 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
   for t, depth_file, rgb_file, gt in matched:
     if max_frames is not None and len(stamps) >= max_frames:
       break
-    current = os.path.join(path, depth_file)
+    current, listing = os.path.join(path, depth_file), "depth.txt"
     try:
       values = np.array([float(v) for v in gt[1:]])
       if not np.all(np.isfinite(values)) or np.linalg.norm(values[3:]) < 1e-6:
         raise files.BadFileError(f"{gt_path}: invalid pose at timestamp {gt[0]}")
       d = files.read_depth(current, depth_scale)
-      current = os.path.join(path, rgb_file)
+      current, listing = os.path.join(path, rgb_file), "rgb.txt"
       rgb = files.read_rgb(current)
       if rgb.shape[:2] != d.shape:
         raise files.BadFileError(f"{current} is {rgb.shape[:2]}, its depth image {depth_file} "
@@ -137,6 +147,8 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
       elif d.shape != size:
         raise files.BadFileError(f"{current} is {d.shape}, other frames are {size}")
     except (files.BadFileError, FileNotFoundError) as e:
+      if not skip_bad and isinstance(e, FileNotFoundError):
+        raise FileNotFoundError(f"{e} (listed in {os.path.join(path, listing)})") from None
       if not skip_bad:
         raise
       skipped.append({"timestamp": t, "file": current, "reason": str(e)})

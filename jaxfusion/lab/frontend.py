@@ -15,7 +15,9 @@ command.
 The cache (`cached_predictions`) stores a network's outputs once per rendered sequence: one
 `.npz` per sequence and model, written to a temporary file and renamed, whose name carries the
 model's digest, the layout seed, shift, resolution, frame count, M, the MC seed and a digest of
-the rendered images, and whose metadata is checked when it is read.
+the rendered images, and whose metadata (that key, and a digest of the arrays) is checked when
+it is read (`read_cache_entry`). An entry that is damaged, truncated or of another key is
+reported in one line and recomputed.
 """
 
 import hashlib
@@ -115,7 +117,9 @@ def cached_predictions(front_end, sequence, *, layout_seed: int, shift: float,
   """The front end's outputs for a sequence, computed once and cached (write then rename).
 
   A cache written for another model, sequence or M is never used: the file name carries the
-  model's digest and `cache_sequence_id`, and the metadata inside is checked.
+  model's digest and `cache_sequence_id`, and the metadata inside is checked. An entry that
+  cannot be read whole (truncated, damaged, arrays of the wrong shape, a digest mismatch) is
+  reported in one line and recomputed.
 
   Args:
     front_end: a front end (`model_id`, `predict`).
@@ -135,23 +139,79 @@ def cached_predictions(front_end, sequence, *, layout_seed: int, shift: float,
   meta = {"version": CACHE_VERSION, "model": front_end.model_id, "sequence": seq_id}
   if os.path.exists(path):
     try:
-      with np.load(path) as data:
-        stored = json.loads(bytes(data["meta"]).decode())
-        if stored == meta:
-          return {k: data[k] for k in ("det", "mean", "var")}
-      tqdm.write(f"cache {path} was made for {stored}; recomputing")
-    except (OSError, ValueError, KeyError):
-      tqdm.write(f"cache {path} is unreadable; recomputing")
+      return read_cache_entry(path, meta, frames=len(sequence),
+                              image_size=np.shape(sequence.rgb)[1:3])
+    except StaleCacheError as e:
+      tqdm.write(f"cache {path} was made for {e.args[0]}; recomputing")
+    except (io.BadFileError, OSError) as e:
+      tqdm.write(f"cache {path} is unreadable ({_reason(path, e)}); recomputing")
   det, mean, var = front_end.predict(sequence.rgb, num_samples=num_samples,
                                      key=jax.random.PRNGKey(mc_seed))
+  arrays = {"det": np.asarray(det, np.float32), "mean": np.asarray(mean, np.float32),
+            "var": np.asarray(var, np.float32)}
+  stored = {**meta, "digest": io.array_digest(arrays)}
 
   def write(tmp):
     with open(tmp, "wb") as f:
-      np.savez(f, det=det, mean=mean, var=var,
-               meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))
+      np.savez(f, **arrays, meta=np.frombuffer(json.dumps(stored).encode(), np.uint8))
 
   io.atomic_write(path, write)
-  return {"det": det, "mean": mean, "var": var}
+  return arrays
+
+
+CACHE_FILE = "front-end cache entry"
+CACHE_ARRAYS = ("det", "mean", "var")
+
+
+class StaleCacheError(Exception):
+  """A whole cache entry written for another key (its stored key is `args[0]`)."""
+
+
+def _reason(path: str, error: Exception) -> str:
+  """The part of a reader's message after the path (it is printed with the path already)."""
+  text = str(error)
+  prefix = f"{path} is not a {CACHE_FILE} ("
+  return text[len(prefix):-1] if text.startswith(prefix) and text.endswith(")") else text
+
+
+def read_cache_entry(path: str, meta: dict, *, frames: Optional[int] = None,
+                     image_size=None) -> dict:
+  """Reads one entry of the front-end cache, refusing anything not whole or not its key's.
+
+  An entry holds `det`, `mean`, `var` (`(T, H, W, K) float32`, one shape) and `meta`: JSON
+  with the `version`, `model` and `sequence` of its key and, for entries written since it was
+  added, `digest` (`io.array_digest` of the three arrays). Entries without a digest are still
+  used: their zip CRCs are checked on reading and their key must match.
+
+  Args:
+    path: the entry.
+    meta: the key it must carry (`version`, `model`, `sequence`).
+    frames: T, when known.
+    image_size: `(H, W)`, when known.
+
+  Returns:
+    dict with `det`, `mean`, `var`.
+
+  Raises:
+    FileNotFoundError: no file.
+    io.BadFileError: damaged, not a cache entry, wrong shapes/dtypes or a digest mismatch.
+    StaleCacheError: a whole entry of another key.
+  """
+  data = io.read_npz(path, what=CACHE_FILE, required=(*CACHE_ARRAYS, "meta"))
+  stored = io.read_json_array(path, CACHE_FILE, data["meta"])
+  digest = stored.pop("digest", None)
+  if stored != meta:
+    raise StaleCacheError(stored)
+  arrays = {k: data[k] for k in CACHE_ARRAYS}
+  h, w = (None, None) if image_size is None else (int(image_size[0]), int(image_size[1]))
+  shape = (frames, h, w, None)
+  for name, value in arrays.items():
+    io.check_array(path, CACHE_FILE, name, value, shape, np.float32)
+    shape = value.shape
+  if digest is not None and digest != io.array_digest(arrays):
+    raise io.BadFileError(f"{path} is not a {CACHE_FILE} (its arrays do not match their "
+                          "digest)")
+  return arrays
 
 
 def simulated_predictions(labels: np.ndarray, *, env: str, trajectory: int, num_classes: int,

@@ -186,11 +186,14 @@ def eval_command(args: argparse.Namespace) -> int:
   state, rule, meta = io.load_map(args.map)
   if not os.path.exists(args.gt):
     raise FileNotFoundError(f"--gt: no such file {args.gt!r}")
-  with np.load(args.gt) as f:
-    if "coords" not in f or "labels" not in f:
-      raise ValueError(f"{args.gt} must hold 'coords' and 'labels' (as written by "
-                       "`jaxfusion run`)")
-    gt = {"coords": f["coords"], "labels": f["labels"]}
+  what = "GT voxel-label file with 'coords' and 'labels' (as written by `jaxfusion run`)"
+  f = io.read_npz(args.gt, what=what, required=("coords", "labels"))
+  io.check_array(args.gt, what, "coords", f["coords"], (None, 3), f["coords"].dtype)
+  io.check_array(args.gt, what, "labels", f["labels"], (len(f["coords"]),), f["labels"].dtype)
+  if not (np.issubdtype(f["coords"].dtype, np.integer)
+          and np.issubdtype(f["labels"].dtype, np.integer)):
+    raise io.BadFileError(f"{args.gt} is not a {what} (coords and labels must be integers)")
+  gt = {"coords": f["coords"], "labels": f["labels"]}
   ev = metrics.evaluate_map(jf.read_map(state), gt, state.num_classes,
                             ignore_label=datasets.IGNORE_LABEL)
   names = meta["class_names"] or [str(i) for i in range(state.num_classes)]

@@ -8,6 +8,8 @@ Shape legend: N voxels, K classes, T frames.
 import dataclasses
 import html
 import os
+import zipfile
+import zlib
 from typing import Iterable, Optional, Sequence
 
 import numpy as np
@@ -75,13 +77,23 @@ class ViewMap:
 
 def is_map_file(path: str) -> bool:
   """True if `path` is a `.npz` written by `jaxfusion.io.save_map` (reads only its index)."""
+  return _not_a_map(path) is None
+
+
+def _not_a_map(path: str):
+  """None for a map file (judged by its index), else why it is not one, in a few words."""
   if not os.path.isfile(path):
-    return False
+    return "not a file"
   try:
     with np.load(path) as data:
-      return "metadata" in data.files and "keys" in data.files
-  except (OSError, ValueError, TypeError, AttributeError, EOFError):   # not .npz / a .npy
-    return False
+      names = data.files
+  except (OSError, ValueError, TypeError, AttributeError, EOFError, zipfile.BadZipFile,
+          zlib.error) as e:   # not .npz / a .npy / damaged
+    return f"{type(e).__name__}: {e}" if isinstance(e, (zipfile.BadZipFile, EOFError)) else (
+        "not an .npz archive")
+  if "metadata" in names and "keys" in names:
+    return None
+  return "no map arrays in it"
 
 
 def find_map_files(paths: Sequence[str]) -> list:
@@ -113,11 +125,11 @@ def find_map_files(paths: Sequence[str]) -> list:
         raise ValueError(f"{path}: no jaxfusion map (.npz from `jaxfusion run` or `demo`) in "
                          "this folder")
       found += inside
-    elif is_map_file(path):
+    elif (problem := _not_a_map(path)) is None:
       found.append(path)
     else:
       raise ValueError(f"{path} is not a jaxfusion map file (a .npz written by `jaxfusion run` "
-                       "or `demo`)")
+                       f"or `demo`; {problem})")
   unique, seen = [], set()
   for path in found:
     real = os.path.realpath(path)
@@ -142,15 +154,16 @@ def gt_path_for(path: str, sequence: Optional[str]) -> Optional[str]:
 
 def load_gt(path: str) -> dict:
   """GT voxel labels (`coords (M, 3) int32`, `labels (M,) int32`) as written by run/demo."""
-  try:
-    with np.load(path) as f:
-      coords, labels = np.asarray(f["coords"]), np.asarray(f["labels"])
-  except (OSError, ValueError, KeyError, AttributeError) as e:
-    raise ValueError(f"{path} is not a GT voxel-label file with 'coords' and 'labels' ({e})"
-                     ) from e
+  from jaxfusion import io  # pylint: disable=import-outside-toplevel
+  what = "GT voxel-label file with 'coords' and 'labels'"
+  f = io.read_npz(path, what=what, required=("coords", "labels"))
+  coords, labels = f["coords"], f["labels"]
   if coords.ndim != 2 or coords.shape[1] != 3 or labels.shape != (len(coords),):
     raise ValueError(f"{path}: GT coords must be (M, 3) and labels (M,); got {coords.shape} "
                      f"and {labels.shape}")
+  if not (np.issubdtype(coords.dtype, np.integer) and np.issubdtype(labels.dtype, np.integer)):
+    raise ValueError(f"{path}: GT coords and labels must be integers; got {coords.dtype} and "
+                     f"{labels.dtype}")
   return {"coords": coords.astype(np.int32), "labels": labels.astype(np.int32)}
 
 
