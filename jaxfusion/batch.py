@@ -168,10 +168,12 @@ def shard_leading(fn, mesh: Optional[Mesh], sharded: tuple):
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "capacity", "num_classes", "voxel_size", "max_probes", "frames_axis", "rule_axis",
-    "camera_axis", "mesh"))
-def _fuse_many(frames, mask, camera, rule, *, capacity, num_classes, voxel_size, max_probes,
+    "capacity", "num_classes", "max_probes", "frames_axis", "rule_axis", "camera_axis", "mesh"))
+def _fuse_many(frames, mask, camera, rule, voxel_size, *, capacity, num_classes, max_probes,
                frames_axis, rule_axis, camera_axis, mesh):
+  # `voxel_size` is traced, not static: as a compile-time constant XLA may fold `x / s` into
+  # `x · (1/s)`, whose rounding puts far-away points (|x| ≳ 10⁴ voxels) in other voxels than
+  # `fuse_frame` / `fuse_sequence` (which get it at run time) put them.
   one = functools.partial(fuse_masked, capacity=capacity, num_classes=num_classes,
                           voxel_size=voxel_size, max_probes=max_probes)
   fn = map_over(one, frames_axis=frames_axis, rule_axis=rule_axis, camera_axis=camera_axis)
@@ -327,8 +329,8 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
     frames, mask = put_sharded((frames, mask), mesh, sharded=True)
     camera = put_sharded(camera, mesh, sharded=camera_axis)
     rule = put_sharded(rule, mesh, sharded=False)
-  states = _fuse_many(frames, mask, camera, rule, capacity=capacity, num_classes=num_classes,
-                      voxel_size=float(voxel_size), max_probes=max_probes, frames_axis=True,
+  states = _fuse_many(frames, mask, camera, rule, np.float32(voxel_size), capacity=capacity,
+                      num_classes=num_classes, max_probes=max_probes, frames_axis=True,
                       rule_axis=False, camera_axis=camera_axis, mesh=mesh)
   return jax.tree.map(lambda x: x[:batch], states) if size != batch else states
 
@@ -366,8 +368,8 @@ def fuse_sweep(frames: fusion.Frame, camera: CameraArg, rules: rules_base.Fusion
   if mesh is not None:
     frames, mask, camera = put_sharded((frames, mask, camera), mesh, sharded=False)
     rules = put_sharded(rules, mesh, sharded=True)
-  states = _fuse_many(frames, mask, camera, rules, capacity=capacity, num_classes=num_classes,
-                      voxel_size=float(voxel_size), max_probes=max_probes,
+  states = _fuse_many(frames, mask, camera, rules, np.float32(voxel_size), capacity=capacity,
+                      num_classes=num_classes, max_probes=max_probes,
                       frames_axis=batch_dims == 2, rule_axis=True, camera_axis=camera_axis,
                       mesh=mesh)
   return jax.tree.map(lambda x: x[:num_rules], states) if size != num_rules else states

@@ -76,13 +76,15 @@ def check_pose_values(T: np.ndarray, name: str = "T_world_cam") -> None:
 
 @functools.partial(jax.jit, static_argnums=1)
 def _strided_mins(arrays, strides):
-  return jnp.stack([jnp.min(x.reshape(-1, x.shape[-1])[::s]) for x, s in zip(arrays, strides)])
+  # NaN-ignoring minima: a NaN elsewhere in the array must not hide a negative value (NaN < 0 is
+  # False); non-finite pixels are skipped by the engine, negative ones are refused.
+  return jnp.stack([jnp.nanmin(x.reshape(-1, x.shape[-1])[::s]) for x, s in zip(arrays, strides)])
 
 
 def _min_values(arrays, sample: bool) -> list:
-  """Smallest entry of each `(..., K)` array: of all of it, or (`sample`) of every s-th pixel, at
-  most `SAMPLED_PIXELS` pixels, the first one included (a view for NumPy arrays, one small
-  jitted gather for all device arrays together)."""
+  """Smallest non-NaN entry of each `(..., K)` array (NaN if all are): of all of it, or
+  (`sample`) of every s-th pixel, at most `SAMPLED_PIXELS` pixels, the first one included (a
+  view for NumPy arrays, one small jitted gather for all device arrays together)."""
   out, on_device = [], []
   for i, x in enumerate(arrays):
     pixels = math.prod(np.shape(x)[:-1])
@@ -95,7 +97,7 @@ def _min_values(arrays, sample: bool) -> list:
       on_device.append((i, x, stride))
       continue
     x = np.asarray(x)
-    out.append(float(np.min(x.reshape(-1, x.shape[-1])[::stride])))
+    out.append(float(np.fmin.reduce(x.reshape(-1, x.shape[-1])[::stride], axis=None)))
   if on_device:
     mins = np.asarray(_strided_mins(tuple(x for _, x, _ in on_device),
                                     tuple(s for _, _, s in on_device)))

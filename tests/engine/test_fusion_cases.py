@@ -308,3 +308,25 @@ def test_fuse_sequence_equals_a_loop_of_fuse_frame():
   np.testing.assert_array_equal(a["coords"], b["coords"])
   np.testing.assert_allclose(a["posterior"], b["posterior"], atol=1e-6)
   np.testing.assert_array_equal(a["hits"], b["hits"])
+
+
+@pytest.mark.parametrize("on_device", [False, True])
+def test_a_nan_does_not_hide_negative_probabilities_or_variances(on_device):
+  # Found by bench/fuzz.py: the sign checks took a plain minimum, which a NaN anywhere turns
+  # into NaN (and NaN < 0 is False), so negative values passed.
+  rule = jf.rules.robust()
+  camera = jf.Camera(8.0, 8.0, 3.5, 2.5)
+  put = jax.device_put if on_device else (lambda x: x)
+  for field in ("probs", "var"):
+    probs = np.full((6, 8, 3), 1 / 3, np.float32)
+    var = np.full((6, 8, 3), 0.01, np.float32)
+    target = probs if field == "probs" else var
+    target[0, 0, 0] = -0.5
+    target[5, 7, 1] = np.nan
+    frame = jf.Frame(np.full((6, 8), 2.0, np.float32), np.eye(4, dtype=np.float32),
+                     put(probs), put(var))
+    with pytest.raises(ValueError, match="negative"):
+      jf.fuse_frame(jf.init_map(capacity=256, num_classes=3, rule=rule), frame, camera, rule)
+    with pytest.raises(ValueError, match="negative"):
+      jf.fuse_sequence(jf.init_map(capacity=256, num_classes=3, rule=rule),
+                       jax.tree.map(lambda x: x[None], frame), camera, rule)

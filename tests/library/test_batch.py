@@ -165,3 +165,23 @@ def test_sharded_over_four_devices_equals_one_device():
   proc = subprocess.run([sys.executable, "-c", _SHARDED_SCRIPT], env=env, cwd=root,
                         capture_output=True, text=True, timeout=300, check=False)
   assert proc.returncode == 0 and "SHARDED_OK" in proc.stdout, proc.stderr[-3000:]
+
+
+def test_far_from_the_origin_a_batch_puts_pixels_where_fuse_sequence_does():
+  # Found by bench/fuzz.py: with the voxel size a compile-time constant, XLA's rounding of the
+  # division put points 10⁴–10⁵ m away into other voxels than `fuse_sequence` did.
+  rule = jf.rules.sum_probs()
+  height, width, k = 16, 20, 4
+  camera = jf.Camera(0.8 * width, 0.8 * width, (width - 1) / 2, (height - 1) / 2)
+  rng = np.random.default_rng(0)
+  for scale in (1e4, 1e5):
+    depth = rng.uniform(0.5, 6.0, (1, 1, height, width)).astype(np.float32)
+    pose = np.eye(4, dtype=np.float32)[None, None].copy()
+    pose[0, 0, :3, 3] = [scale, -scale / 3, scale / 7]
+    frames = jf.Frame(depth, pose, np.full((1, 1, height, width, k), 0.25, np.float32), None)
+    batched = jf.fuse_batch(frames, camera, rule, capacity=1024, voxel_size=0.05)
+    single = jf.fuse_sequence(jf.init_map(capacity=1024, num_classes=k, voxel_size=0.05,
+                                          rule=rule),
+                              jax.tree.map(lambda x: x[0], frames), camera, rule)
+    stored = lambda keys: {tuple(r) for r in np.asarray(keys) if r[0] != jf.EMPTY}
+    assert stored(batched.keys[0]) == stored(single.keys), scale
