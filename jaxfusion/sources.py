@@ -60,25 +60,16 @@ def mc_moments(samples: jax.Array) -> tuple[jax.Array, jax.Array]:
 
   Returns:
     `(mean, var)`, both `(H, W, K)` float32. With M = 1 the variance is exactly zero.
-
-  The checks run in Python and the arithmetic as one compiled program (`_moments`), so a plain
-  call costs what a call inside the caller's `jax.jit` does.
   """
-  shape = np.shape(samples)
-  dtype = np.result_type(samples) if not isinstance(samples, jax.Array) else samples.dtype
-  if len(shape) != 4:
-    raise ValueError(f"mc_moments expects samples of shape (M, H, W, K); got shape {shape}")
-  if not jnp.issubdtype(dtype, jnp.floating):
-    raise TypeError(f"mc_moments expects float probabilities; got dtype {dtype}")
-  if shape[0] == 0:
+  samples = jnp.asarray(samples)
+  if samples.ndim != 4:
+    raise ValueError(
+        f"mc_moments expects samples of shape (M, H, W, K); got shape {samples.shape}")
+  if not jnp.issubdtype(samples.dtype, jnp.floating):
+    raise TypeError(f"mc_moments expects float probabilities; got dtype {samples.dtype}")
+  if samples.shape[0] == 0:
     raise ValueError("mc_moments needs at least one sample (M >= 1); got M = 0")
-  return _moments(samples)
-
-
-@jax.jit
-def _moments(samples: jax.Array) -> tuple[jax.Array, jax.Array]:
-  """`mc_moments`' arithmetic on checked `(M, H, W, K)` samples (compiled once per shape)."""
-  samples = jnp.asarray(samples).astype(jnp.float32)
+  samples = samples.astype(jnp.float32)
   num = samples.shape[0]
   first = samples[0]
   sum_d = sum_d2 = jnp.zeros_like(first)

@@ -436,17 +436,20 @@ def test_model_commands_refuse_bad_files_with_exit_2(originals, tmp_path):
 # -- Interrupted writes. ------------------------------------------------------------------------
 
 WRITER = textwrap.dedent("""
-    import os, sys, numpy as np
+    import io as _io, sys, time, numpy as np
     from jaxfusion import io
     path, flag = sys.argv[1], sys.argv[2]
-    big = np.random.default_rng(0).random((64, 1024, 1024)).astype(np.float32)   # 256 MiB
+    buf = _io.BytesIO()
+    np.savez(buf, det=np.ones((4, 64, 64), np.float32))
+    data = buf.getvalue()
 
     def write(tmp):
       with open(tmp, "wb") as f:
-        f.write(b"PK")            # the start of an archive is on disk ...
+        f.write(data[:len(data) // 2])   # half an archive is on disk ...
         f.flush()
-        open(flag, "w").close()   # ... tell the test, and go on writing the rest slowly
-        np.savez(f, det=big, mean=big, var=big)
+        open(flag, "w").close()          # ... tell the test, and stall as a slow disk would
+        time.sleep(120)
+        f.write(data[len(data) // 2:])
 
     io.atomic_write(path, write)
 """)

@@ -289,18 +289,3 @@ def test_mc_moments_property_equals_float64_two_pass(num, k, seed, kind):
   else:                           # values near the float32 underflow edge
     samples = rng.random(shape + (k,)) * 1e-30
   assert_moments_match(samples.astype(np.float32))
-
-
-def test_mc_moments_called_plainly_runs_one_compiled_program():
-  # The README calls `jaxfusion.mc_moments(samples)` plainly: its arithmetic must run as one compiled
-  # program (`sources._moments`), not op by op, and give what a call under `jax.jit` gives.
-  samples = np.random.default_rng(7).dirichlet(np.ones(4), (5, 6, 7)).astype(np.float32)
-  before = sources._moments._cache_size()  # pylint: disable=protected-access
-  mean, var = jaxfusion.mc_moments(samples)
-  after = sources._moments._cache_size()  # pylint: disable=protected-access
-  assert after == before + 1
-  jaxfusion.mc_moments(samples + 0.0)                       # same shape: no new compilation
-  assert sources._moments._cache_size() == after  # pylint: disable=protected-access
-  jit_mean, jit_var = jax.jit(jaxfusion.mc_moments)(samples)
-  np.testing.assert_array_equal(np.asarray(mean), np.asarray(jit_mean))
-  np.testing.assert_array_equal(np.asarray(var), np.asarray(jit_var))
