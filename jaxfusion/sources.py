@@ -333,22 +333,9 @@ class PrecomputedSource:
       `Prediction(probs (H, W, K), var (H, W, K) or None)` float32 arrays.
     """
     del key
-    if index is None:
-      raise ValueError("a precomputed source needs the frame number: predict(..., index=i)")
-    if not -len(self.files) <= index < len(self.files):
-      raise IndexError(f"frame {index} out of range: {len(self.files)} precomputed frames")
-    path = self.files[index]
-    contents = io.read_npz(str(path), what="precomputed prediction file")
-    if "samples" in contents and "mean" in contents:
-      raise ValueError(f"{path}: holds both 'samples' and 'mean'; keep one")
+    path, contents = self._read(index)
     if "samples" in contents:
-      samples = _as_float("samples", contents["samples"], path)
-      if self.channels_first and samples.ndim == 4:
-        samples = np.moveaxis(samples, 1, -1)
-      if samples.ndim != 4:
-        raise ValueError(f"{path}: 'samples' must have shape (M, H, W, K); got {samples.shape}")
-      _check_distribution(samples, "samples", path)
-      probs, var = (np.asarray(a) for a in mc_moments(samples))
+      probs, var = (np.asarray(a) for a in mc_moments(self._samples(path, contents)))
     elif "mean" in contents:
       probs = _as_float("mean", contents["mean"], path)
       var = _as_float("var", contents["var"], path) if "var" in contents else None
@@ -370,6 +357,32 @@ class PrecomputedSource:
       raise ValueError(f"{path}: prediction is {probs.shape[:2]} pixels but the image is "
                        f"{tuple(np.shape(image)[:2])}")
     return Prediction(jnp.asarray(probs), None if var is None else jnp.asarray(var))
+
+  def read_samples(self, index: int) -> Optional[np.ndarray]:
+    """The checked `(M, H, W, K)` float32 samples of frame `index`, or None when its file holds
+    moments (`mean`, `var`) instead."""
+    path, contents = self._read(index)
+    return self._samples(path, contents) if "samples" in contents else None
+
+  def _read(self, index: Optional[int]) -> tuple:
+    if index is None:
+      raise ValueError("a precomputed source needs the frame number: predict(..., index=i)")
+    if not -len(self.files) <= index < len(self.files):
+      raise IndexError(f"frame {index} out of range: {len(self.files)} precomputed frames")
+    path = self.files[index]
+    contents = io.read_npz(str(path), what="precomputed prediction file")
+    if "samples" in contents and "mean" in contents:
+      raise ValueError(f"{path}: holds both 'samples' and 'mean'; keep one")
+    return path, contents
+
+  def _samples(self, path, contents) -> np.ndarray:
+    samples = _as_float("samples", contents["samples"], path)
+    if self.channels_first and samples.ndim == 4:
+      samples = np.moveaxis(samples, 1, -1)
+    if samples.ndim != 4:
+      raise ValueError(f"{path}: 'samples' must have shape (M, H, W, K); got {samples.shape}")
+    _check_distribution(samples, "samples", path)
+    return samples
 
 
 def precomputed_source(directory: str | os.PathLike, *, pattern: str = "*.npz",

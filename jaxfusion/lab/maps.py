@@ -56,20 +56,24 @@ def _predictions(seq, args, class_map=None):
   remapped by `class_map` (samples before their moments, where there are samples)."""
   import jax  # pylint: disable=import-outside-toplevel
   remap = jax.jit(jf.ClassMap.remap)
-  moments = jax.jit(lambda cm, samples: jf.mc_moments(cm.remap_samples(samples)))
+  remap_samples = jax.jit(jf.ClassMap.remap_samples)
+  # mc_moments stays outside jit: its loop over M would unroll into an O(M) graph.
+  moments = lambda cm, samples: jf.mc_moments(remap_samples(cm, samples))
   if args.predictions:
     source = jf.sources.precomputed_source(args.predictions)
     if len(source) != len(seq):
       raise ValueError(f"--predictions has {len(source)} frames but the data has {len(seq)}")
     for t in range(len(seq)):
-      pred = source.predict(None, None, index=t)       # reads and checks the file
-      probs, var = pred
-      if class_map is not None:
-        _check_source_classes(class_map, probs.shape[-1], f"--predictions {source.files[t]} has")
-        with np.load(source.files[t]) as data:
-          samples = data["samples"] if "samples" in data.files else None
-        probs, var = (moments(class_map, samples) if samples is not None else
-                      remap(class_map, probs, var))
+      samples = None if class_map is None else source.read_samples(t)
+      if samples is None:
+        probs, var = source.predict(None, None, index=t)
+      what = f"--predictions {source.files[t]} has"
+      if samples is not None:                          # remap the samples, then their moments
+        _check_source_classes(class_map, samples.shape[-1], what)
+        probs, var = moments(class_map, samples)
+      elif class_map is not None:
+        _check_source_classes(class_map, probs.shape[-1], what)
+        probs, var = remap(class_map, probs, var)
       yield np.asarray(probs), None if var is None else np.asarray(var)
     return
   net = frontend.FrontEnd(args.checkpoint, class_names=None)
