@@ -1,7 +1,10 @@
 """Realistic indoor frames for the benchmarks, made without the dataset package.
 
 A box-shaped room (6 × 5 × 3 m) with a few boxes standing in it, ray cast in NumPy from a random
-pose inside the room, so that depths lie between about 0.5 and 6 m and a frame touches the number
+pose inside the room. The room is modelled with walls and box faces on whole decimetres and placed
+in the world at a sub-voxel offset (`OFF_GRID`), so that, as in a real room, no surface lies on a
+face of the 0.1 m voxel grid (`aligned=True` keeps them on the faces: with depth noise each
+such surface splits across two voxel layers, a stress case), so that depths lie between about 0.5 and 6 m and a frame touches the number
 of voxels a real indoor frame does. The class probabilities are a smooth, peaked Dirichlet-like
 field (one dominant class per object, a few pixels ambiguous) and the variances a plausible
 MC-dropout spread, so every rule does its full work.
@@ -17,6 +20,9 @@ import jaxfusion as jf
 
 ROOM_MIN = np.array([-3.0, -2.5, 0.0])
 ROOM_MAX = np.array([3.0, 2.5, 3.0])
+# Where the room's origin sits in the world (metres): 0.37, 0.39 and 0.43 of a 0.1 m voxel off the
+# grid along x, y and z, so walls, floor and box faces lie inside voxels, not on their faces.
+OFF_GRID = np.array([0.037, -0.061, 0.043])
 # (min corner, max corner, class) of the furniture boxes.
 BOXES = (
     ((-2.5, -2.0, 0.0), (-1.2, -1.0, 0.8), 1),
@@ -85,7 +91,8 @@ def _ray_cast(T, camera, height, width):
 
 
 def make_frames(num_frames: int, *, height: int = 480, width: int = 640, num_classes: int = 13,
-                seed: int = 0, hole_fraction: float = 0.03) -> BenchFrames:
+                seed: int = 0, hole_fraction: float = 0.03, aligned: bool = False
+                ) -> BenchFrames:
   """Renders `num_frames` indoor frames from random poses in the room.
 
   Args:
@@ -95,6 +102,7 @@ def make_frames(num_frames: int, *, height: int = 480, width: int = 640, num_cla
     num_classes: K ≥ 7.
     seed: random seed (poses, noise, probabilities).
     hole_fraction: fraction of pixels with no depth (0), as real sensors have.
+    aligned: put the room's surfaces on voxel faces (no `OFF_GRID` offset), a stress case.
 
   Returns:
     BenchFrames with depths clipped to [0.5, 6] m (farther or nearer pixels are holes).
@@ -118,6 +126,9 @@ def make_frames(num_frames: int, *, height: int = 480, width: int = 640, num_cla
     p /= p.sum(-1, keepdims=True)
     var = p * (1.0 - p) * rng.uniform(0.01, 0.2, (height, width, 1))
     depths.append(depth.astype(np.float32))
+    if not aligned:
+      T = T.copy()
+      T[:3, 3] += OFF_GRID                        # room frame → world frame
     poses.append(T.astype(np.float32))
     probs.append(p.astype(np.float32))
     variances.append(var.astype(np.float32))

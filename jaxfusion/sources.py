@@ -55,33 +55,64 @@ def mc_moments(samples: jax.Array) -> tuple[jax.Array, jax.Array]:
   (Σd/M)², 0)` — never negative, and within ~1e-7 of a float64 two-pass result for probabilities
   (one-hot samples included).
 
+  The checks run in Python and the arithmetic as one compiled program per shape (`_moments`), so
+  a plain call costs what a call inside the caller's `jax.jit` does; under a transformation it
+  traces inline. The program's size does not grow with M (a `lax.scan` over groups of samples).
+
   Args:
     samples: `(M, H, W, K)` float softmax samples, one per dropout key / ensemble member.
 
   Returns:
     `(mean, var)`, both `(H, W, K)` float32. With M = 1 the variance is exactly zero.
   """
-  samples = jnp.asarray(samples)
-  if samples.ndim != 4:
-    raise ValueError(
-        f"mc_moments expects samples of shape (M, H, W, K); got shape {samples.shape}")
-  if not jnp.issubdtype(samples.dtype, jnp.floating):
-    raise TypeError(f"mc_moments expects float probabilities; got dtype {samples.dtype}")
-  if samples.shape[0] == 0:
+  shape = np.shape(samples)
+  dtype = samples.dtype if hasattr(samples, "dtype") else np.result_type(samples)
+  if len(shape) != 4:
+    raise ValueError(f"mc_moments expects samples of shape (M, H, W, K); got shape {shape}")
+  if not jnp.issubdtype(dtype, jnp.floating):
+    raise TypeError(f"mc_moments expects float probabilities; got dtype {dtype}")
+  if shape[0] == 0:
     raise ValueError("mc_moments needs at least one sample (M >= 1); got M = 0")
-  samples = samples.astype(jnp.float32)
+  return _moments(samples)
+
+
+def _group_sums(samples: jax.Array, start, size: int) -> tuple[jax.Array, jax.Array]:
+  """Σ d and Σ d² over samples[start : start + size] (static size), one fused elementwise pass."""
+  first = samples[0]
+  group_d = group_d2 = None
+  for s in range(size):
+    d = (samples[start + s] if isinstance(start, int)
+         else jax.lax.dynamic_index_in_dim(samples, start + s, keepdims=False)) - first
+    group_d = d if group_d is None else group_d + d
+    group_d2 = d * d if group_d2 is None else group_d2 + d * d
+  return group_d, group_d2
+
+
+@jax.jit
+def _moments(samples: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """`mc_moments`' arithmetic on checked `(M, H, W, K)` samples.
+
+  Samples 1..M−1 are summed in groups of `_MOMENT_GROUP`: the full groups by a `lax.scan` (one
+  compiled body whatever M is), the last partial group unrolled. The order of the additions is
+  the same as one sequential loop over groups, so the result does not depend on M's split.
+  """
+  samples = jnp.asarray(samples).astype(jnp.float32)
   num = samples.shape[0]
   first = samples[0]
-  sum_d = sum_d2 = jnp.zeros_like(first)
-  for start in range(1, num, _MOMENT_GROUP):      # static: ceil((M − 1) / 32) fused passes
-    group_d = group_d2 = None
-    for s in range(start, min(start + _MOMENT_GROUP, num)):
-      d = samples[s] - first
-      group_d = d if group_d is None else group_d + d
-      group_d2 = d * d if group_d2 is None else group_d2 + d * d
-    sum_d, sum_d2 = sum_d + group_d, sum_d2 + group_d2
-  mean_d = sum_d / num
-  return first + mean_d, jnp.maximum(sum_d2 / num - mean_d * mean_d, 0.0)
+  full, tail = divmod(num - 1, _MOMENT_GROUP)
+  sums = (jnp.zeros_like(first), jnp.zeros_like(first))
+
+  def step(carry, g):
+    group = _group_sums(samples, 1 + g * _MOMENT_GROUP, _MOMENT_GROUP)
+    return (carry[0] + group[0], carry[1] + group[1]), None
+
+  if full:
+    sums, _ = jax.lax.scan(step, sums, jnp.arange(full))
+  if tail:
+    group = _group_sums(samples, 1 + full * _MOMENT_GROUP, tail)
+    sums = (sums[0] + group[0], sums[1] + group[1])
+  mean_d = sums[0] / num
+  return first + mean_d, jnp.maximum(sums[1] / num - mean_d * mean_d, 0.0)
 
 
 SegmentFn = Callable[[Any, jax.Array, jax.Array], jax.Array]

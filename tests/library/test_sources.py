@@ -289,3 +289,31 @@ def test_mc_moments_property_equals_float64_two_pass(num, k, seed, kind):
   else:                           # values near the float32 underflow edge
     samples = rng.random(shape + (k,)) * 1e-30
   assert_moments_match(samples.astype(np.float32))
+
+
+def test_mc_moments_called_plainly_runs_one_compiled_program():
+  # The README calls `jaxfusion.mc_moments(samples)` plainly: its arithmetic must run as one compiled
+  # program (`sources._moments`), not op by op, and give what a call under `jax.jit` gives.
+  samples = np.random.default_rng(7).dirichlet(np.ones(4), (5, 6, 7)).astype(np.float32)
+  before = sources._moments._cache_size()  # pylint: disable=protected-access
+  mean, var = jaxfusion.mc_moments(samples)
+  after = sources._moments._cache_size()  # pylint: disable=protected-access
+  assert after == before + 1
+  jaxfusion.mc_moments(samples + 0.0)                       # same shape: no new compilation
+  assert sources._moments._cache_size() == after  # pylint: disable=protected-access
+  jit_mean, jit_var = jax.jit(jaxfusion.mc_moments)(samples)
+  np.testing.assert_array_equal(np.asarray(mean), np.asarray(jit_mean))
+  np.testing.assert_array_equal(np.asarray(var), np.asarray(jit_var))
+
+
+@pytest.mark.parametrize("num", [31, 32, 33, 64, 97, 20_000])
+def test_mc_moments_many_samples_compile_small_and_match_float64(num):
+  # Full groups of 32 go through one scanned body and the rest unrolled: the compiled program must
+  # not grow with M (M = 20 000 once took XLA past 18 GB when unrolled), and every split of M into
+  # groups gives the float64 two-pass moments.
+  samples = np.random.default_rng(num).dirichlet(np.ones(3), (num, 2, 3)).astype(np.float32)
+  lowered = jax.jit(jaxfusion.mc_moments).lower(samples).as_text()
+  assert len(lowered) < 200_000
+  mean, var = jaxfusion.mc_moments(samples)
+  np.testing.assert_allclose(np.asarray(mean), samples.astype(np.float64).mean(0), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(var), samples.astype(np.float64).var(0), atol=1e-6)
