@@ -296,22 +296,13 @@ class ClassMap:
       ValueError: the last axis is not K_src, or var's shape is not probs'.
     """
     probs = self._check_input(probs, "probabilities")
-    mass = _apply(probs, self.matrix)
-    probs_out = mass
-    if self.renormalize:
-      probs_out, total, ok = _renormalize(mass)
     if var is None:
-      return probs_out, None
+      return _remap_probs(self, probs), None
     var = self._check_input(var, "variances")
     if var.shape != probs.shape:
       raise ValueError(f"variances {var.shape} must have the probabilities' shape "
                        f"{probs.shape}")
-    var_out = _apply(var, self.matrix)
-    if self.renormalize:
-      safe_total = jnp.where(ok, total, 1.0)
-      var_out = jnp.where(ok, var_out / (safe_total * safe_total), 1.0)
-    bound = jnp.maximum(probs_out * (1.0 - probs_out), 0.0)
-    return probs_out, jnp.clip(var_out, 0.0, bound)
+    return _remap_moments(self, probs, var)
 
   def remap_samples(self, samples: jax.Array) -> jax.Array:
     """Remaps class-probability samples (pure; jittable): then `mc_moments` is exact.
@@ -329,18 +320,42 @@ class ClassMap:
     Raises:
       ValueError: the last axis is not K_src.
     """
-    samples = self._check_input(samples, "samples")
-    mass = _apply(samples, self.matrix)
-    return _renormalize(mass)[0] if self.renormalize else mass
+    return _remap_probs(self, self._check_input(samples, "samples"))
 
   def _check_input(self, x, what: str) -> jax.Array:
-    x = jnp.asarray(x)
+    if not hasattr(x, "dtype"):
+      x = np.asarray(x)
+    shape = np.shape(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
       raise ValueError(f"the class map takes float {what}; got dtype {x.dtype}")
-    if x.ndim < 1 or x.shape[-1] != self.num_source_classes:
+    if len(shape) < 1 or shape[-1] != self.num_source_classes:
       raise ValueError(f"the class map has {self.num_source_classes} source classes but the "
-                       f"{what} have {x.shape[-1] if x.ndim else 0} (shape {x.shape})")
-    return x.astype(jnp.float32)
+                       f"{what} have {shape[-1] if shape else 0} (shape {tuple(shape)})")
+    return x
+
+
+# The arithmetic of `remap` and `remap_samples`, compiled once per class map structure and input
+# shape, so that a plain call runs one fused program rather than op by op; under a caller's
+# transformation they trace inline.
+@jax.jit
+def _remap_probs(cm: ClassMap, probs: jax.Array) -> jax.Array:
+  mass = _apply(probs.astype(jnp.float32), cm.matrix)
+  return _renormalize(mass)[0] if cm.renormalize else mass
+
+
+@jax.jit
+def _remap_moments(cm: ClassMap, probs: jax.Array, var: jax.Array
+                   ) -> tuple[jax.Array, jax.Array]:
+  mass = _apply(probs.astype(jnp.float32), cm.matrix)
+  probs_out = mass
+  if cm.renormalize:
+    probs_out, total, ok = _renormalize(mass)
+  var_out = _apply(var.astype(jnp.float32), cm.matrix)
+  if cm.renormalize:
+    safe_total = jnp.where(ok, total, 1.0)
+    var_out = jnp.where(ok, var_out / (safe_total * safe_total), 1.0)
+  bound = jnp.maximum(probs_out * (1.0 - probs_out), 0.0)
+  return probs_out, jnp.clip(var_out, 0.0, bound)
 
 
 def _apply(x, matrix):

@@ -21,13 +21,26 @@ from jaxfusion.state import MapState, warn_if_dropped
 
 
 def voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
-  """Normalised posterior of every slot, and which slots hold a voxel (jittable).
+  """Normalised posterior of every slot, and which slots hold a voxel (jitted; jittable).
+
+  A plain call runs one compiled program per map shape and rule (not op by op over the `(C, K)`
+  rows); under a caller's transformation it traces inline.
 
   Returns:
     `(posterior (C, K) float32, occupied (C,) bool)`; empty slots hold the rule's prior.
+
+  Raises:
+    TypeError: `state` is not a MapState.
   """
+  if not isinstance(state, MapState):
+    raise TypeError(f"voxel_posteriors expects a MapState; got {type(state).__name__}")
+  return _voxel_posteriors(state)
+
+
+@jax.jit
+def _voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
   posterior = jax.vmap(state.posterior_fn)(state.rows)
-  return posterior, state.keys[:, 0] != hashing.EMPTY
+  return posterior, state.keys[..., 0] != hashing.EMPTY
 
 
 class QueryResult(NamedTuple):

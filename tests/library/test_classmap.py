@@ -468,3 +468,26 @@ def test_run_remaps_the_networks_samples(tmp_path, capsys):
   path.write_text(json.dumps({"source_classes": swapped, "map": coarse}))
   assert cli.main(argv) == 2
   assert "are not the network's" in capsys.readouterr().err
+
+
+def test_remap_called_plainly_runs_one_compiled_program():
+  # Like mc_moments, the remaps are called plainly on whole frames: each must run as one compiled
+  # program per shape (not op by op over (H, W, K) arrays) and equal the call under jax.jit.
+  cm = jf.ClassMap.from_table({0: 0, 1: 0, 2: 1, 3: None}, source_classes=4, target_classes=2,
+                           unmapped="drop")
+  rng = np.random.default_rng(3)
+  probs = rng.dirichlet(np.ones(4), (5, 6)).astype(np.float32)
+  var = (0.1 * probs * (1 - probs)).astype(np.float32)
+  samples = rng.dirichlet(np.ones(4), (3, 5, 6)).astype(np.float32)
+  before = (classmap._remap_moments._cache_size(),   # pylint: disable=protected-access
+            classmap._remap_probs._cache_size())     # pylint: disable=protected-access
+  out = cm.remap(probs, var)
+  out_samples = cm.remap_samples(samples)
+  cm.remap(probs + 0.0, var + 0.0)                    # same shapes: no new compilation
+  cm.remap_samples(samples + 0.0)
+  after = (classmap._remap_moments._cache_size(),    # pylint: disable=protected-access
+           classmap._remap_probs._cache_size())      # pylint: disable=protected-access
+  assert after == (before[0] + 1, before[1] + 1)
+  jitted = jax.jit(lambda c, p, v, s: (c.remap(p, v), c.remap_samples(s)))(cm, probs, var, samples)
+  for ours, theirs in zip(jax.tree.leaves((out, out_samples)), jax.tree.leaves(jitted)):
+    np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))

@@ -388,3 +388,24 @@ def test_the_readme_information_gain_example_runs_on_the_quick_start_map():
   assert 0.2 < seen < 1.0                                # the shifted view sees some new space
   assert 0.0 <= gain <= math.log(state.num_classes) + 1e-6
   np.testing.assert_allclose(gain, float(q.entropy.mean()), rtol=1e-6)
+
+
+def test_voxel_posteriors_called_plainly_runs_one_compiled_program():
+  # voxel_posteriors reads every slot's (K,) row: called plainly it must run as one compiled
+  # program per map (a (C, K) softmax op by op cost 2-3x), equal to the call under jax.jit.
+  rule = jf.rules.robust()
+  state = jf.init_map(capacity=2**8, num_classes=3, rule=rule)
+  depth = np.full((6, 8), 2.0, np.float32)
+  probs = np.random.default_rng(0).dirichlet(np.ones(3), (6, 8)).astype(np.float32)
+  frame = jf.Frame(depth, np.eye(4, dtype=np.float32), probs, 0.01 * probs)
+  state = jf.fuse_frame(state, frame, jf.Camera(8.0, 8.0, 3.5, 2.5), rule)
+  before = readout._voxel_posteriors._cache_size()  # pylint: disable=protected-access
+  post, occupied = jf.voxel_posteriors(state)
+  jf.voxel_posteriors(state)
+  assert readout._voxel_posteriors._cache_size() == before + 1  # pylint: disable=protected-access
+  jit_post, jit_occupied = jax.jit(jf.voxel_posteriors)(state)
+  np.testing.assert_array_equal(np.asarray(post), np.asarray(jit_post))
+  np.testing.assert_array_equal(np.asarray(occupied), np.asarray(jit_occupied))
+  assert int(occupied.sum()) == int(state.num_occupied) > 0
+  with pytest.raises(TypeError, match="MapState"):
+    jf.voxel_posteriors(state.rows)
