@@ -78,9 +78,13 @@ def _r_observe(probs, var, hparams):
 
 
 def _dirichlet_terms(probs_for_log, var, hparams):
-  alpha = concentration(var, hparams["eps"])
+  shifted = jnp.clip(var, 0.0, 0.25) + hparams["eps"]
+  # max_j α_j = −log(min_j (var_j + ε)), −log being decreasing: the voxel's ᾱ is taken from the
+  # pixels' smallest shifted variance (max of its negative), so α is computed once per pixel for
+  # the weighted sum only, and its logarithm per voxel (`_dirichlet_update`) — the same value.
   return base.PixelTerms(
-      sums={"wloglik": alpha * numerics.safe_log(probs_for_log)}, maxes={"alpha": alpha})
+      sums={"wloglik": -jnp.log(shifted) * numerics.safe_log(probs_for_log)},
+      maxes={"neg_shifted_var": -shifted})
 
 
 def _d_observe(probs, var, hparams):
@@ -103,7 +107,12 @@ def _dirichlet_init(num_classes, hparams):
 def _dirichlet_update(row, obs, hparams):
   del hparams
   alpha_prev = row["alpha_bar"]
-  alpha_bar = jnp.maximum(alpha_prev, obs.maxes["alpha"])
+  # The frame's max_j α_j = −log(min_j (var_j + ε)); lanes without a pixel (max −inf) and
+  # untouched lanes (1) get no new concentration, with a finite gradient.
+  least = -obs.maxes["neg_shifted_var"]
+  seen = jnp.isfinite(least) & (least > 0)
+  alpha_frame = jnp.where(seen, -jnp.log(jnp.where(seen, least, 1.0)), -jnp.inf)
+  alpha_bar = jnp.maximum(alpha_prev, alpha_frame)
   # ᾱ_t > 0 for any voxel with a pixel; the guard only keeps untouched lanes finite.
   safe = jnp.where(alpha_bar > 0, alpha_bar, 1.0)
   logp = (alpha_prev / safe) * row["logp"] + obs.sums["wloglik"] / safe

@@ -71,10 +71,10 @@ def test_scalar_beta_is_rule_4_bit_for_bit_and_equal_vector_beta_matches():
 
   def old_dr_observe(probs, var, hparams):
     b = hparams["beta"]
-    alpha = -jnp.log(jnp.clip(var, 0.0, 0.25) + hparams["eps"])
+    shifted = jnp.clip(var, 0.0, 0.25) + hparams["eps"]
     p = (1.0 - b) * probs + b / K
-    return jf.rules.PixelTerms(sums={"wloglik": alpha * numerics.safe_log(p)},
-                               maxes={"alpha": alpha})
+    return jf.rules.PixelTerms(sums={"wloglik": -jnp.log(shifted) * numerics.safe_log(p)},
+                               maxes={"neg_shifted_var": -shifted})
 
   # D+R only: R and D+R share `regularize` (and R's scalar path is in test_engine_reference).
   rule = jf.rules.robust(beta=0.37)
