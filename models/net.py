@@ -215,21 +215,51 @@ class SegNet(nnx.Module):
     Returns:
       `(B, H, W, K)` float32 logits at the input resolution.
     """
+    return self.from_shared(self.shared(images), (images.shape[1], images.shape[2]), key=key,
+                            deterministic=deterministic)
+
+  def shared(self, images: jax.Array) -> jax.Array:
+    """The part of the forward pass before the first dropout layer (input normalisation, stem
+    and first residual block): the same for every MC-dropout sample of an image.
+
+    Args:
+      images: `(B, H, W, 3)` float32 RGB in [0, 1].
+
+    Returns:
+      `(B, h, w, C)` float32 features of the first block, before its dropout.
+    """
     assert images.ndim == 4 and images.shape[-1] == 3, images.shape
+    if self.config.input_norm:
+      images = standardize(images)
+    return self.blocks[0](self.stem(images))
+
+  def from_shared(self, features: jax.Array, size: tuple[int, int], *, key: jax.Array | None,
+                  deterministic: bool) -> jax.Array:
+    """The rest of the forward pass, from `shared`'s features: every dropout layer and after.
+
+    `from_shared(shared(x), x.shape[1:3], key=k, ...)` is `__call__(x, key=k, ...)`, so an MC
+    sampler computes `shared` once per image and this once per dropout key.
+
+    Args:
+      features: `(B, h, w, C)` from `shared`.
+      size: `(H, W)` of the input images (the logits are resized to it).
+      key: PRNG key for the dropout masks; may be None when `deterministic`.
+      deterministic: True turns dropout off.
+
+    Returns:
+      `(B, H, W, K)` float32 logits.
+    """
     if not deterministic and key is None:
       raise ValueError("MC dropout (deterministic=False) needs a PRNG key")
     keys = (jax.random.split(key, self.config.num_dropout_layers) if not deterministic
             else [None] * self.config.num_dropout_layers)
-    height, width = images.shape[1:3]
-    if self.config.input_norm:
-      images = standardize(images)
-    x = self.stem(images)
-    for i, block in enumerate(self.blocks):
+    x = self.dropout(features, deterministic=deterministic, rngs=keys[0])
+    for i, block in enumerate(self.blocks[1:], start=1):
       x = self.dropout(block(x), deterministic=deterministic, rngs=keys[i])
     x = self.dropout(self.aspp(x), deterministic=deterministic, rngs=keys[-1])
     logits = self.classifier(self.head(x))
     return jax.image.resize(
-        logits, (logits.shape[0], height, width, logits.shape[-1]), method="bilinear")
+        logits, (logits.shape[0], size[0], size[1], logits.shape[-1]), method="bilinear")
 
 
 def standardize(images: jax.Array, eps: float = 0.02) -> jax.Array:
@@ -286,6 +316,19 @@ def apply(graphdef: nnx.GraphDef, params: nnx.State, key: jax.Array | None,
   """Pure forward pass: `(B, H, W, 3)` float32 images → `(B, H, W, K)` float32 logits."""
   model = nnx.merge(graphdef, params)
   return model(images, key=key, deterministic=deterministic)
+
+
+def apply_shared(graphdef: nnx.GraphDef, params: nnx.State, images: jax.Array) -> jax.Array:
+  """`SegNet.shared` as a pure function: the key-independent start of the forward pass."""
+  return nnx.merge(graphdef, params).shared(images)
+
+
+def apply_from_shared(graphdef: nnx.GraphDef, params: nnx.State, key: jax.Array | None,
+                      features: jax.Array, size: tuple[int, int], *,
+                      deterministic: bool) -> jax.Array:
+  """`SegNet.from_shared` as a pure function: `apply` = `apply_from_shared ∘ apply_shared`."""
+  return nnx.merge(graphdef, params).from_shared(features, size, key=key,
+                                                 deterministic=deterministic)
 
 
 def count_params(params: nnx.State) -> int:

@@ -1,8 +1,9 @@
 """Monte-Carlo dropout sampling and deterministic prediction, jitted and batched.
 
-`mc_samples` draws M softmax samples of one frame in a single jitted call: `jax.vmap` over M
-dropout keys (the layers before the first dropout do not depend on the key, so `vmap` leaves
-them unbatched and they run once). `jaxfusion.mc_moments` turns the samples into the mean and
+`mc_samples` draws M softmax samples of one frame in a single jitted call. The layers before
+the first dropout (input normalisation, stem, first block: `net.apply_shared`) do not depend on
+the dropout key, so they run once per image, and the rest (`net.apply_from_shared`) runs under
+`jax.vmap` over the M keys; the samples are those of M full passes `net.apply(key_m)`. `jaxfusion.mc_moments` turns the samples into the mean and
 the epistemic variance that the robust fusion rule consumes. `deterministic_probs` is the
 baselines' single pass with dropout off. The `*_batch` variants add a leading frame axis.
 
@@ -68,9 +69,11 @@ def prepare_images(images) -> jax.Array:
 @functools.partial(jax.jit, static_argnums=0, static_argnames="num_samples")
 def _mc_samples(graphdef, params, key, image, *, num_samples):
   keys = jax.random.split(key, num_samples)
+  shared = net.apply_shared(graphdef, params, image[None])   # once per image, not per sample
 
   def one(k):
-    logits = net.apply(graphdef, params, k, image[None], deterministic=False)[0]
+    logits = net.apply_from_shared(graphdef, params, k, shared, image.shape[:2],
+                                   deterministic=False)[0]
     return jax.nn.softmax(logits, axis=-1)
 
   return jax.vmap(one)(keys)

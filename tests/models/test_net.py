@@ -199,3 +199,65 @@ def test_input_norm_makes_the_net_blind_to_a_global_colour_cast(tiny, image):
   old = net.tiny_config(K).to_dict()
   del old["input_norm"]
   assert net.SegNetConfig.from_dict(old).input_norm is False
+
+
+def _conv_batches(jaxpr) -> list:
+  """Leading (batch) size of every convolution's output in a jaxpr, in program order."""
+  sizes = []
+  for eqn in jaxpr.eqns:
+    if eqn.primitive.name == "conv_general_dilated":
+      sizes.append(eqn.outvars[0].aval.shape[0])
+    for sub in jax.core.subjaxprs(eqn) if hasattr(jax.core, "subjaxprs") else ():
+      sizes += _conv_batches(sub)
+    for param in eqn.params.values():
+      inner = getattr(param, "jaxpr", None)
+      if inner is not None and hasattr(inner, "eqns"):
+        sizes += _conv_batches(inner)
+  return sizes
+
+
+@pytest.mark.parametrize("input_norm", [False, True])
+def test_mc_samples_share_the_layers_before_the_first_dropout(input_norm):
+  # The stem and the first block run once per image (batch 1), every later convolution once per
+  # sample (batch M), and the samples are those of M independent full passes with the same keys.
+  config = dataclasses.replace(net.tiny_config(), widths=(8, 8), strides=(2, 1),
+                               dilations=(1, 1), input_norm=input_norm)
+  graphdef, params = net.init(config, key=jax.random.key(0))
+  image = np.random.default_rng(1).integers(0, 256, (16, 24, 3), dtype=np.uint8)
+  key, m = jax.random.key(5), 6
+  samples = sampling.mc_samples(graphdef, params, key, image, num_samples=m)
+  x = sampling.prepare_images(image)[None]
+  one_pass = lambda k: jax.nn.softmax(net.apply(graphdef, params, k, x, deterministic=False)[0],
+                                      axis=-1)
+  keys = jax.random.split(key, m)
+  # Bit for bit the M full passes vmapped in one program (the sampler before the split) ...
+  @jax.jit
+  def vmapped_full_passes(p, k, im):
+    return jax.vmap(lambda kk: jax.nn.softmax(
+        net.apply(graphdef, p, kk, im[None], deterministic=False)[0], axis=-1))(
+            jax.random.split(k, m))
+  np.testing.assert_array_equal(np.asarray(samples),
+                                np.asarray(vmapped_full_passes(params, key, x[0])))
+  # ... and M separate full passes up to float32 rounding, which this small random net amplifies
+  # (one full pass eagerly and under jit differ by ~2e-4 here).
+  separate = np.stack([np.asarray(jax.jit(one_pass)(k)) for k in keys])
+  np.testing.assert_allclose(np.asarray(samples), separate, atol=1e-3)
+  assert not np.allclose(np.asarray(samples[0]), np.asarray(samples[1]))   # masks differ
+  jaxpr = jax.make_jaxpr(
+      lambda k, im: sampling._mc_samples(graphdef, params, k, im, num_samples=m))(  # pylint: disable=protected-access
+          key, sampling.prepare_images(image)).jaxpr
+  batches = _conv_batches(jaxpr)
+  # Stem (1 conv) + first block (2 convs, and a projection shortcut when its shape changes).
+  shared = 1 + 2 + (1 if config.widths[0] != config.stem_width or config.strides[0] != 1 else 0)
+  assert batches[:shared] == [1] * shared, batches
+  assert batches[shared:] and all(b == m for b in batches[shared:]), batches
+
+
+def test_apply_is_from_shared_after_shared():
+  graphdef, params = net.init(net.tiny_config(), key=jax.random.key(2))
+  x = jnp.asarray(np.random.default_rng(3).random((2, 12, 20, 3)), jnp.float32)
+  for key, deterministic in ((jax.random.key(4), False), (None, True)):
+    whole = net.apply(graphdef, params, key, x, deterministic=deterministic)
+    parts = net.apply_from_shared(graphdef, params, key, net.apply_shared(graphdef, params, x),
+                                  (12, 20), deterministic=deterministic)
+    np.testing.assert_array_equal(np.asarray(whole), np.asarray(parts))
