@@ -47,6 +47,9 @@ class Config:
   pipeline: tuple = (((120, 160), 8, 8), ((120, 160), 32, 4), ((480, 640), 8, 2),
                      ((480, 640), 32, 1))
   pipeline_repeats: int = 3
+  # The MC sampler with the layers before the first dropout shared, against every sample a full
+  # pass: ((H, W), M).
+  sampler: tuple = (((120, 160), 8), ((120, 160), 32), ((480, 640), 8))
   peer_repeats: int = 5
   voxel_size: float = 0.1
 
@@ -62,7 +65,7 @@ class Config:
                mc_samples=(1, 8, 32), peer_repeats=5,
                pipeline=(((120, 160), 8, 4), ((120, 160), 32, 2), ((480, 640), 8, 1),
                          ((480, 640), 32, 1)),
-               pipeline_repeats=2)
+               pipeline_repeats=2, sampler=(((120, 160), 8), ((480, 640), 8)))
 
   @classmethod
   def tiny(cls):
@@ -71,7 +74,7 @@ class Config:
     return cls(resolutions=((24, 32),), classes=(13,), rules=("robust_dr",), repeats=1,
                num_frames=2, capacity=2**12, pixel_scaling=((24, 32),), capacities=(2**12,),
                fills=(0.5,), sequence_length=2, mc_samples=(2,), peer_repeats=1,
-               pipeline=(((24, 32), 2, 2),), pipeline_repeats=1)
+               pipeline=(((24, 32), 2, 2),), pipeline_repeats=1, sampler=(((24, 32), 2),))
 
 
 def machine() -> dict:
@@ -273,6 +276,120 @@ def sequence_row(frames, config) -> dict:
           "frames_per_s": length / seconds}
 
 
+def floor_row(frames, *, repeats, core_ms=None) -> dict:
+  """The floor of a D+R frame: one fused pass that reads depth, probabilities and variances,
+  computes D+R's per-pixel terms (`rule.observe`, the engine's own kernel) and reduces them,
+  with no grouping, hashing or scatter. Two forms, the faster is the floor: the terms written
+  out, and the terms reduced per pixel over K and summed over the pixels in 10 blocks. (Reducing
+  them over the pixels to per-class sums, a column reduction, is 3× slower on XLA-CPU.)"""
+  rule = jf.rules.by_name("robust_dr")
+  n = frames.depth.shape[1] * frames.depth.shape[2]
+  k = frames.probs.shape[-1]
+  depth, probs, var = (jax.device_put(x[0].reshape(n, -1)) for x in
+                       (frames.depth, frames.probs, frames.var))
+
+  def terms(p, v):
+    t = jax.vmap(rule.observe, in_axes=(0, 0, None))(p, v, rule.hparams)
+    return t.sums["wloglik"], t.maxes["neg_shifted_var"]
+
+  def written(d, p, v):
+    w, m = terms(p, v)
+    return jnp.where(d > 0, w, 0.0), m
+
+  def reduced(d, p, v, blocks=10):
+    size = n // blocks
+
+    def body(b, acc):
+      pb, vb = (jax.lax.dynamic_slice(x, (b * size, 0), (size, k)) for x in (p, v))
+      db = jax.lax.dynamic_slice(d, (b * size, 0), (size, 1))[:, 0]
+      w, m = terms(pb, vb)
+      return acc + jnp.sum(jnp.where(db > 0, jnp.sum(w, -1) + jnp.max(m, -1), 0.0))
+
+    return jax.lax.fori_loop(0, blocks, body, jnp.zeros((), jnp.float32))
+
+  forms = {}
+  for name, fn in (("terms written", written), ("terms reduced", reduced)):
+    jitted = jax.jit(fn)
+    forms[name] = 1e3 * median_time(lambda f=jitted: f(depth, probs, var), repeats)
+  floor_ms = min(forms.values())
+  return {"forms_ms": forms, "floor_ms": floor_ms, "dr_core_ms": core_ms,
+          "dr_over_floor": None if core_ms is None else core_ms / floor_ms}
+
+
+def aligned_row(config, height, width, k) -> dict:
+  """D+R on the same room with its surfaces on voxel faces (`scene.make_frames(aligned=True)`):
+  with depth noise each such surface splits across two voxel layers, a stress case."""
+  frames = scene.make_frames(config.num_frames, height=height, width=width, num_classes=k,
+                             aligned=True)
+  return fuse_frame_row(frames, HEADLINE["rule"], capacity=config.capacity,
+                        repeats=config.repeats, voxel_size=config.voxel_size)
+
+
+def loop_rows(frames, config) -> dict:
+  """Per-frame cost of one sequence fused three ways, D+R, each into a fresh map per repeat:
+  a Python loop of `fuse_frame`, one `fuse_sequence` (a scan), and `fuse_batch` of one
+  sequence (the same scan under `vmap`, B = 1). Fresh maps keep the three on equal terms."""
+  rule = jf.rules.by_name(HEADLINE["rule"])
+  k = frames.probs.shape[-1]
+  length = frames.depth.shape[0]
+  dev = _device_frames(frames)
+  stacked = jax.device_put(frames.stacked())
+  batched = jax.device_put(jax.tree.map(lambda x: x[None], frames.stacked()))
+  fresh = lambda: jf.init_map(capacity=config.capacity, num_classes=k,
+                              voxel_size=config.voxel_size, rule=rule)
+
+  def loop():
+    state = fresh()
+    for frame in dev:
+      state = jf.fuse_frame(state, frame, frames.camera, rule)
+    return state
+
+  def sequence():
+    return jf.fuse_sequence(fresh(), stacked, frames.camera, rule)
+
+  def batch():
+    return jf.fuse_batch(batched, frames.camera, rule, capacity=config.capacity,
+                         voxel_size=config.voxel_size)
+
+  allocate = 1e3 * median_time(lambda: fresh(), max(3, config.repeats // 3))
+  rows = {"frames": length, "init_map_ms": allocate}
+  for name, fn in (("loop", loop), ("sequence", sequence), ("batch", batch)):
+    rows[f"{name}_ms_per_frame"] = 1e3 * median_time(fn, max(3, config.repeats // 3)) / length
+  return rows
+
+
+def sampler_rows(config, *, model=None) -> list:
+  """The shipped net's MC sampler (`models.sampling.mc_samples`: the layers before the first
+  dropout once per image, the rest vmapped over M keys) against every sample a full pass of
+  its own (the image broadcast to M, then the same vmap): the same samples up to rounding."""
+  import functools  # pylint: disable=import-outside-toplevel
+  from models import checkpoint  # pylint: disable=import-outside-toplevel
+  from models import net  # pylint: disable=import-outside-toplevel
+  from models import sampling  # pylint: disable=import-outside-toplevel
+  model = checkpoint.load_pretrained() if model is None else model
+
+  @functools.partial(jax.jit, static_argnums=0, static_argnames="num_samples")
+  def unshared(graphdef, params, key, image, *, num_samples):
+    images = jnp.broadcast_to(image, (num_samples,) + image.shape)
+    return jax.vmap(lambda k_, im: jax.nn.softmax(
+        net.apply(graphdef, params, k_, im[None], deterministic=False)[0], axis=-1))(
+            jax.random.split(key, num_samples), images)
+
+  rows = []
+  for (height, width), m in config.sampler:
+    image = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
+    key = jax.random.key(1)
+    repeats = max(2, config.pipeline_repeats)
+    shared_s = median_time(lambda: sampling.mc_samples(model.graphdef, model.params, key, image,
+                                                       num_samples=m), repeats)
+    prepared = sampling.prepare_images(image)
+    full_s = median_time(lambda: unshared(model.graphdef, model.params, key, prepared,
+                                          num_samples=m), repeats)
+    rows.append({"height": height, "width": width, "M": m, "shared_ms": 1e3 * shared_s,
+                 "full_passes_ms": 1e3 * full_s, "speedup": full_s / shared_s})
+  return rows
+
+
 def mc_rows(config, height, width) -> list:
   """`mc_moments` of an `(M, H, W, K)` stack against NumPy's `samples.sum(0)` of the same stack
   (one read of the samples: the floor of any moment computation), interleaved in this process.
@@ -364,7 +481,7 @@ def run(config: Config, *, out_dir, log=print) -> dict:
   results = {"machine": machine(), "device": jax.devices()[0].device_kind,
              "config": dataclasses.asdict(config), "throughput": [], "numpy_peer": [],
              "open3d_peer": None}
-  headline_frames = None
+  headline_frames, peer_frames = None, {}
   for height, width in config.resolutions:
     for k in config.classes:
       frames = scene.make_frames(config.num_frames, height=height, width=width, num_classes=k)
@@ -375,17 +492,21 @@ def run(config: Config, *, out_dir, log=print) -> dict:
         log(f"fuse_frame {rule_name:10s} {height}x{width} K={k}: {row['ms_per_frame']:.2f} ms "
             f"({row['frames_per_s']:.1f} frames/s; core {row['core_ms_per_frame']:.2f} ms), "
             f"compile {row['compile_s']:.2f} s")
-      # The peers and the capacity scan use the largest resolution at K = 13 (or the last K).
-      if (height, width) == config.resolutions[-1] and (
-          k == HEADLINE["num_classes"] or headline_frames is None):
-        headline_frames = frames
+      # The peers run at the largest resolution, for every K; the capacity scan and the other
+      # stages use K = 13 there (or the last K).
+      if (height, width) == config.resolutions[-1]:
+        peer_frames[k] = frames
+        if k == HEADLINE["num_classes"] or headline_frames is None:
+          headline_frames = frames
   # Peers on the same frames, one after the other, in this process.
-  for rule_name in config.rules:
-    row = numpy_row(headline_frames, rule_name, repeats=config.peer_repeats,
-                    voxel_size=config.voxel_size, capacity=config.capacity)
-    results["numpy_peer"].append(row)
-    log(f"numpy peer {rule_name:10s}: {row['ms_per_frame']:.1f} ms, interleaved with ours "
-        f"{row['core_ms_interleaved']:.1f} ms: {row['speedup']:.1f}x")
+  for k, frames in peer_frames.items():
+    for rule_name in config.rules:
+      row = numpy_row(frames, rule_name, repeats=config.peer_repeats,
+                      voxel_size=config.voxel_size, capacity=config.capacity)
+      row["num_classes"] = k
+      results["numpy_peer"].append(row)
+      log(f"numpy peer {rule_name:10s} K={k}: {row['ms_per_frame']:.1f} ms, interleaved with "
+          f"ours {row['core_ms_interleaved']:.1f} ms: {row['speedup']:.1f}x")
   results["open3d_peer"] = open3d_peer.measure(headline_frames, voxel_size=config.voxel_size,
                                                repeats=config.peer_repeats)
   log(f"open3d peer: {results['open3d_peer']}")
@@ -402,6 +523,20 @@ def run(config: Config, *, out_dir, log=print) -> dict:
                                  num_classes=headline_frames.probs.shape[-1], seed=5)
   results["sequence"] = sequence_row(seq_frames, config)
   log(f"fuse_sequence: {results['sequence']}")
+  results["loops"] = loop_rows(seq_frames, config)
+  log(f"loop / fuse_sequence / fuse_batch: {results['loops']}")
+  h_w_k = (headline_frames.depth.shape[1], headline_frames.depth.shape[2],
+           headline_frames.probs.shape[-1])
+  headline_core = next((r["core_ms_per_frame"] for r in results["throughput"]
+                        if r["rule"] == "robust_dr" and
+                        (r["height"], r["width"], r["num_classes"]) == h_w_k), None)
+  results["floor"] = floor_row(headline_frames, repeats=config.repeats, core_ms=headline_core)
+  log(f"floor: {results['floor']}")
+  results["aligned"] = aligned_row(config, *h_w_k)
+  log(f"aligned room, D+R: {results['aligned']['ms_per_frame']:.2f} ms "
+      f"({results['aligned']['occupied']} voxels)")
+  results["sampler"] = sampler_rows(config)
+  log(f"sampler: {results['sampler']}")
   results["mc_moments"] = mc_rows(config, *headline_frames.depth.shape[1:])
   log(f"mc_moments: {results['mc_moments']}")
   results["pipeline"] = pipeline_rows(config)
@@ -417,6 +552,22 @@ def run(config: Config, *, out_dir, log=print) -> dict:
   except ImportError:
     pass
   return results
+
+
+def _fmt(x) -> str:
+  return "—" if x is None else f"{x:.2f}"
+
+
+def config_frames(results: dict) -> int:
+  return results["config"]["num_frames"]
+
+
+def _headline_occupied(results: dict) -> str:
+  h, w, k = results["headline_shape"]
+  for r in results["throughput"]:
+    if (r["rule"], r["height"], r["width"], r["num_classes"]) == (HEADLINE["rule"], h, w, k):
+      return f"{r['occupied']} voxels"
+  return "—"
 
 
 def _ratio(a, b):
@@ -440,16 +591,16 @@ def to_markdown(results: dict) -> str:
                  f"{r['core_ms_per_frame']:.2f} | {r['core_frames_per_s']:.1f} | "
                  f"{r['points_per_s'] / 1e6:.1f} | {peak:.0f} |")
   h, w, k = results["headline_shape"]
-  lines += ["", f"### Peers on the same {h}×{w}, K = {k} frames, same process (NumPy peer and "
-            "our jitted step called alternately, so both see the same load)", "",
-            "| rule | jaxfusion core ms (interleaved) | NumPy peer ms | speed-up vs NumPy "
-            "(target ≥ 5×) |", "|---|---|---|---|"]
+  lines += ["", f"### Peers on the same {h}×{w} frames, same process (NumPy peer and our jitted "
+            "step called alternately, so both see the same load)", "",
+            "| rule | K | jaxfusion core ms (interleaved) | NumPy peer ms | speed-up vs NumPy "
+            "(target ≥ 5×) |", "|---|---|---|---|---|"]
   core = {r["rule"]: r["core_ms_per_frame"] for r in results["throughput"]
           if (r["height"], r["width"], r["num_classes"]) == (h, w, k)}
   for r in results["numpy_peer"]:
     c = r.get("core_ms_interleaved", core.get(r["rule"]))
-    lines.append(f"| {r['rule']} | {c:.2f} | {r['ms_per_frame']:.1f} | "
-                 f"{_ratio(r['ms_per_frame'], c)} |")
+    lines.append(f"| {r['rule']} | {r.get('num_classes', k)} | {c:.2f} | "
+                 f"{r['ms_per_frame']:.1f} | {_ratio(r['ms_per_frame'], c)} |")
   o3d = results["open3d_peer"]
   if o3d and o3d.get("ms_per_frame"):
     c = core.get(HEADLINE["rule"])
@@ -472,6 +623,29 @@ def to_markdown(results: dict) -> str:
   lines += ["", f"### fuse_sequence (scan of {s['frames']} frames, D+R): "
             f"{s['ms_per_frame']:.2f} ms per frame ({s['frames_per_s']:.1f} frames/s; first call "
             f"incl. compile {s['first_call_s']:.1f} s)", "",
+            "### One sequence three ways (D+R, fresh map each; ms per frame)", "",
+            "| frames | loop of fuse_frame | fuse_sequence | fuse_batch (B = 1) | init_map ms |",
+            "|---|---|---|---|---|",
+            f"| {results['loops']['frames']} | {results['loops']['loop_ms_per_frame']:.2f} | "
+            f"{results['loops']['sequence_ms_per_frame']:.2f} | "
+            f"{results['loops']['batch_ms_per_frame']:.2f} | "
+            f"{results['loops']['init_map_ms']:.2f} |", "",
+            "### The floor of a D+R frame (one fused pass: read, per-pixel terms, reduce)", "",
+            "| form | ms |", "|---|---|"] + [
+            f"| {name} | {ms:.2f} |" for name, ms in results["floor"]["forms_ms"].items()] + [
+            "", f"D+R core {_fmt(results['floor']['dr_core_ms'])} ms = "
+            f"**{_fmt(results['floor']['dr_over_floor'])}× the floor** (target ≤ 2.5×).", "",
+            f"Aligned room (surfaces on voxel faces, a stress case), D+R: "
+            f"{results['aligned']['ms_per_frame']:.2f} ms per frame (core "
+            f"{results['aligned']['core_ms_per_frame']:.2f} ms), "
+            f"{results['aligned']['occupied']} voxels after {config_frames(results)} frames "
+            f"(off-grid: {_headline_occupied(results)}).", "",
+            "### MC sampler: layers before the first dropout shared, against a full pass per "
+            "sample", "", "| H×W | M | shared ms | full passes ms | speed-up |",
+            "|---|---|---|---|---|"] + [
+            f"| {r['height']}×{r['width']} | {r['M']} | {r['shared_ms']:.1f} | "
+            f"{r['full_passes_ms']:.1f} | {r['speedup']:.2f}× |" for r in results["sampler"]] + [
+            "",
             "### MC front end: `mc_moments` per frame, against NumPy's `samples.sum(0)` of the "
             "same stack (interleaved, same process)", "",
             "| M | mc_moments ms (plain call) | inside jax.jit ms | NumPy sum(0) ms | ratio, "
