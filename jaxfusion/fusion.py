@@ -192,7 +192,8 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
     new = jax.vmap(rule.update, in_axes=(0, 0, None))(old, observation, hparams)
     return jax.tree.map(lambda r, x: r.at[slots].set(x.astype(r.dtype), mode="drop"), rows, new)
 
-  def dense(rows, probs, var, hparams, segment, counts, slot_of_group):
+  def dense(rows, probs, var, hparams, segment, counts, slot_of_group, index):
+    probs, var = _frame_of(probs, index), _frame_of(var, index)
     num_rows = counts.shape[0]
     segment = jnp.minimum(segment, num_rows)
     terms = observe(probs, var, hparams)
@@ -205,16 +206,24 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
     return apply(rows, hparams, sums, maxes, counts, slot_of_group)
 
   @jax.custom_vjp
-  def update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups):
-    n, num_classes = probs.shape
+  def update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups, index):
+    n, num_classes = probs.shape[-2:]
     blocks = _pixel_blocks(n)
     size = n // blocks
-    shapes = jax.eval_shape(observe, probs[:1], var[:1], hparams)
+    shapes = jax.eval_shape(observe, probs.reshape(-1, num_classes)[:1],
+                            var.reshape(-1, num_classes)[:1], hparams)
+
+    def pixel_block(x, b):
+      # A block of frame `index` read straight from a (T, n, K) stack: slicing the frame out
+      # first would copy it (a while loop's operand is materialised), 3 ms a frame at 640×480.
+      if x.ndim == 2:
+        return jax.lax.dynamic_slice(x, (b * size, 0), (size, num_classes))
+      return jax.lax.dynamic_slice(x, (index, b * size, 0), (1, size, num_classes))[0]
 
     def reduce_block(b, acc, start):
       sums, maxes = acc
-      p = jax.lax.dynamic_slice(probs, (b * size, 0), (size, num_classes))
-      v = jax.lax.dynamic_slice(var, (b * size, 0), (size, num_classes))
+      p = pixel_block(probs, b)
+      v = pixel_block(var, b)
       local = jax.lax.dynamic_slice(segment, (b * size,), (size,)) - start
       local = jnp.where((local >= 0) & (local < chunk), local, chunk)
       terms = observe(p, v, hparams)
@@ -238,19 +247,24 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
                                  (jnp.zeros((), jnp.int32), rows))
     return rows
 
-  def fwd(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups):
-    out = update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups)
-    return out, (rows, probs, var, hparams, segment, counts, slot_of_group)
+  def fwd(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups, index):
+    out = update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups, index)
+    return out, (rows, probs, var, hparams, segment, counts, slot_of_group, index)
 
   def bwd(residuals, cotangent):
-    rows, probs, var, hparams, segment, counts, slot_of_group = residuals
-    _, vjp = jax.vjp(lambda r, p, v, h, c: dense(r, p, v, h, segment, c, slot_of_group),
+    rows, probs, var, hparams, segment, counts, slot_of_group, index = residuals
+    _, vjp = jax.vjp(lambda r, p, v, h, c: dense(r, p, v, h, segment, c, slot_of_group, index),
                      rows, probs, var, hparams, counts)
     d_rows, d_probs, d_var, d_hparams, d_counts = vjp(cotangent)
-    return d_rows, d_probs, d_var, d_hparams, None, d_counts, None, None
+    return d_rows, d_probs, d_var, d_hparams, None, d_counts, None, None, None
 
   update.defvjp(fwd, bwd)
   return update
+
+
+def _frame_of(x, index):
+  """Frame `index` of a `(T, n, K)` stack, or the `(n, K)` array itself (index None)."""
+  return x if index is None else jax.lax.dynamic_index_in_dim(x, index, keepdims=False)
 
 
 def fuse_frame_unchecked(state: MapState, frame: Frame, camera: camera_lib.Camera,
@@ -260,26 +274,36 @@ def fuse_frame_unchecked(state: MapState, frame: Frame, camera: camera_lib.Camer
   For code that composes the engine inside its own traced function (`batch`, `tune`, a user's
   `jax.jit`); call `fuse_frame` everywhere else. Same arguments and result as `fuse_frame`.
   """
-  height, width, num_classes = frame.probs.shape
+  return _fuse_frame_of(state, frame, camera, rule, None)
+
+
+def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
+                   rule: rules_base.FusionRule, index) -> MapState:
+  """Fuses one frame: `frames` itself (`index` None), or frame `index` (traced int) of a stack
+  whose fields carry a leading T axis, read in place (`fuse_sequence_unchecked`)."""
+  height, width, num_classes = frames.probs.shape[-3:]
   n = height * width
+  pick = lambda x: x if index is None else jax.lax.dynamic_index_in_dim(x, index, keepdims=False)
+  stack = lambda x: jnp.asarray(x, jnp.float32).reshape(np.shape(x)[:-3] + (n, num_classes))
 
   # Geometry: every pixel → world point → voxel key, in one fused elementwise pass.
-  depth = jnp.asarray(frame.depth, jnp.float32)
-  keys, in_range = camera_lib.depth_to_voxel_keys(depth, frame.T_world_cam, camera,
+  depth = jnp.asarray(pick(frames.depth), jnp.float32)
+  keys, in_range = camera_lib.depth_to_voxel_keys(depth, pick(frames.T_world_cam), camera,
                                                   state.voxel_size)
 
   # Valid pixels: positive finite depth, finite probabilities (and variances if given).
-  probs = jnp.asarray(frame.probs, jnp.float32).reshape(n, num_classes)
-  valid = in_range & (depth.reshape(n) > 0) & jnp.all(jnp.isfinite(probs), axis=-1)
-  if frame.var is not None:
-    var = jnp.asarray(frame.var, jnp.float32).reshape(n, num_classes)
-    valid = valid & jnp.all(jnp.isfinite(var), axis=-1)
+  probs = stack(frames.probs)
+  valid = in_range & (depth.reshape(n) > 0) & jnp.all(
+      jnp.isfinite(_frame_of(probs, index)), axis=-1)
+  if frames.var is not None:
+    var = stack(frames.var)
+    valid = valid & jnp.all(jnp.isfinite(_frame_of(var, index)), axis=-1)
   # Double-where: no NaN/inf reaches the kernels (nor their gradients). Invalid pixels are sent to
   # a junk group, so their terms are never used and only need to be finite; the guard is
   # therefore per element, not a per-pixel mask broadcast over K, which XLA's CPU loops cannot
   # vectorise (it doubled the cost of the per-pixel logarithms). It runs inside `observe`, block
   # by block, so the guarded copies are never materialised either.
-  has_var = frame.var is not None
+  has_var = frames.var is not None
 
   def observe(p, v, hparams):
     p = jnp.where(jnp.isfinite(p), jnp.maximum(p, 0.0), 1.0 / num_classes)
@@ -301,7 +325,7 @@ def fuse_frame_unchecked(state: MapState, frame: Frame, camera: camera_lib.Camer
   state, slot_of_group = _place_groups(state, keys, groups, counts, chunk)
   rows = _rows_update(rule, chunk, observe)(
       state.rows, probs, var if has_var else probs, rule.hparams, groups.segment, counts,
-      slot_of_group, groups.num_groups)
+      slot_of_group, groups.num_groups, index)
   return state.replace(rows=rows)
 
 
@@ -379,10 +403,15 @@ def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,
 
 
 def fuse_sequence_unchecked(state, frames, camera, rule):
-  """`fuse_sequence`'s pure body: one `lax.scan` of `fuse_frame_unchecked`, no checks."""
-  def step(s, frame):
-    return fuse_frame_unchecked(s, frame, camera, rule), None
-  state, _ = jax.lax.scan(step, state, frames)
+  """`fuse_sequence`'s pure body: one `lax.scan` of `fuse_frame_unchecked`, no checks.
+
+  The scan runs over frame indices and each step reads its frame from the stacks in place: a
+  scan over the frames themselves would slice every frame's `(H, W, K)` probabilities and
+  variances into copies first.
+  """
+  def step(s, t):
+    return _fuse_frame_of(s, frames, camera, rule, t), None
+  state, _ = jax.lax.scan(step, state, jnp.arange(frames.depth.shape[0], dtype=jnp.int32))
   return state
 
 

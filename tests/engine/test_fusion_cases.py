@@ -310,10 +310,13 @@ def test_fuse_sequence_equals_a_loop_of_fuse_frame():
   np.testing.assert_array_equal(a["hits"], b["hits"])
 
 
+@pytest.mark.parametrize("bad", ["nan", "none", "inf"])
 @pytest.mark.parametrize("on_device", [False, True])
-def test_a_nan_does_not_hide_negative_probabilities_or_variances(on_device):
+def test_a_nan_does_not_hide_negative_probabilities_or_variances(on_device, bad):
   # Found by bench/fuzz.py: the sign checks took a plain minimum, which a NaN anywhere turns
-  # into NaN (and NaN < 0 is False), so negative values passed.
+  # into NaN (and NaN < 0 is False), so negative values passed. On device the check takes a
+  # plain minimum unless the array's sum says it holds a NaN (or both infinities): every case
+  # must still see the negative entry.
   rule = jf.rules.robust()
   camera = jf.Camera(8.0, 8.0, 3.5, 2.5)
   put = jax.device_put if on_device else (lambda x: x)
@@ -322,7 +325,10 @@ def test_a_nan_does_not_hide_negative_probabilities_or_variances(on_device):
     var = np.full((6, 8, 3), 0.01, np.float32)
     target = probs if field == "probs" else var
     target[0, 0, 0] = -0.5
-    target[5, 7, 1] = np.nan
+    if bad == "nan":
+      target[5, 7, 1] = np.nan
+    elif bad == "inf":
+      target[5, 7, 1], target[4, 2, 2] = np.inf, -np.inf
     frame = jf.Frame(np.full((6, 8), 2.0, np.float32), np.eye(4, dtype=np.float32),
                      put(probs), put(var))
     with pytest.raises(ValueError, match="negative"):
