@@ -31,16 +31,37 @@ def per_class_regularize(p, beta):
   return mixed / Z if Z > 0 else np.full(K, 1.0 / K)
 
 
+def sigmoid(x):
+  return 1.0 / (1.0 + math.exp(-x)) if x >= 0 else math.exp(x) / (1.0 + math.exp(x))
+
+
+def learned_features(p, s, eps):
+  """docs/equations.md §3.9: the six features of one pixel, written out one by one."""
+  K = len(p)
+  order = sorted(range(K), key=lambda i: -p[i])
+  pred = int(np.argmax(p))                  # first of equal maxima, as argmax
+  top, second = p[order[0]], p[order[1]]
+  entropy = -sum(q * math.log(max(q, TINY)) for q in p) / math.log(K)
+  v_pred = min(max(s[pred], 0.0), 0.25)
+  alpha_pred = -math.log(v_pred + eps) / 10.0
+  sqrt_sum_var = math.sqrt(sum(min(max(x, 0.0), 0.25) for x in s) + 1e-12)
+  bound = p[pred] * (1.0 - p[pred])
+  rel = min(v_pred / bound, 1.0) if bound > 0 else 0.0
+  return np.array([top, top - second, entropy, alpha_pred, sqrt_sum_var, rel])
+
+
 class ReferenceMap:
-  """One map under one rule, by docs/equations.md §3. `rule` is one of the six paper names. `beta`,
-  `eps` and `alpha0` may be scalars or per-class sequences of length K (§3.7)."""
+  """One map under one rule, by docs/equations.md §3. `rule` is one of the six paper names, or
+  "learned" (§3.9, its parameters in `learned`). `beta`, `eps` and `alpha0` may be scalars or
+  per-class sequences of length K (§3.7)."""
 
   def __init__(self, rule, num_classes, voxel_size, *, beta=0.3, eps=1e-12,
-               alpha0=-math.log(1e-3), aggregate="sum"):
+               alpha0=-math.log(1e-3), aggregate="sum", learned=None):
     self.rule, self.K, self.voxel_size = rule, num_classes, voxel_size
     as_param = lambda x: float(x) if np.ndim(x) == 0 else np.asarray(x, np.float64)
     self.beta, self.eps, self.alpha0 = as_param(beta), as_param(eps), as_param(alpha0)
     self.aggregate = aggregate
+    self.learned = {k: np.asarray(v, np.float64) for k, v in (learned or {}).items()}
     self.voxels = {}
 
   def _new_voxel(self):
@@ -74,6 +95,9 @@ class ReferenceMap:
     if rule == "sum_labels":
       voxel["score"] += self._reduce([np.eye(K)[int(np.argmax(p))] for p, _ in pixels])
       return
+    if rule == "learned":
+      self._update_learned(voxel, pixels)
+      return
     if rule in ("robust_r", "robust_dr") and np.ndim(self.beta) == 0:
       pixels = [((1 - self.beta) * p + self.beta / K, s) for p, s in pixels]
     elif rule in ("robust_r", "robust_dr"):   # docs/equations.md §3.7: per-class β, over Z_j
@@ -89,6 +113,34 @@ class ReferenceMap:
       logp = prev / new * voxel["logp"] + weighted / new
       voxel["alpha_bar"] = new
     voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
+
+  def _update_learned(self, voxel, pixels):
+    """docs/equations.md §3.9, one voxel and one frame."""
+    K, hp = self.K, self.learned
+    theta, bias, mix, gate = hp["theta"], float(hp["bias"]), float(hp["mix"]), hp["gate"]
+    beta = np.broadcast_to(self.beta, (K,))
+    plain, weighted, alphas = [], [], []
+    for p, s in pixels:
+      w = sigmoid(float(theta @ learned_features(p, s, self.eps)) + bias)
+      log_pt = np.log(np.maximum(per_class_regularize(p, beta) if np.ndim(self.beta)
+                                 else (1 - self.beta) * p + self.beta / K, TINY))
+      alpha = -np.log(np.clip(s, 0.0, 0.25) + self.eps)
+      plain.append(w * log_pt)
+      weighted.append(w * alpha * log_pt)
+      alphas.append(alpha)
+    prev = voxel["alpha_bar"]
+    new = np.maximum(prev, np.max(alphas, axis=0))
+    keep = (1 - mix) + mix * prev / new
+    obs = (1 - mix) * self._reduce(plain) + mix * self._reduce(weighted) / new
+    prior = np.exp(voxel["logp"] - voxel["logp"].max())
+    prior /= prior.sum()
+    soft = np.exp(obs - obs.max())
+    soft /= soft.sum()
+    spread = -sum(q * math.log(max(q, TINY)) for q in prior) / math.log(K)
+    g = sigmoid(gate[0] + gate[1] * float(prior @ soft) + gate[2] * spread)
+    logp = keep * voxel["logp"] + g * obs
+    voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
+    voxel["alpha_bar"] = new
 
   def read(self):
     """Same layout as jaxfusion.read_map, sorted by coordinates."""

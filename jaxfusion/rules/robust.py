@@ -128,7 +128,7 @@ def _shown(x):
   return float(x) if x.ndim == 0 else x.tolist()
 
 
-def _check_hparams(beta, eps, alpha0):
+def check_hparams(beta, eps, alpha0):
   """Value checks where the values are concrete (scalars or per-class vectors, elementwise)."""
   if base.is_concrete(beta):
     b = np.asarray(beta, np.float64)
@@ -175,7 +175,7 @@ def robust(*, beta=DEFAULT_BETA, eps=DEFAULT_EPS, regularize=True, dirichlet=Tru
     raise ValueError(
         "robust() with regularize=False and dirichlet=False is plain Bayesian fusion: "
         "use rules.bayes()")
-  _check_hparams(beta, eps, alpha0)
+  check_hparams(beta, eps, alpha0)
   hparams = {
       "beta": base.as_class_leaf(beta, "beta"),
       "eps": base.as_class_leaf(eps, "eps"),

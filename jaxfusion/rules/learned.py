@@ -1,0 +1,190 @@
+"""A learned fusion rule: weighted, regularised Bayes with a per-pixel weight `w_j = f_θ(φ_j)`.
+
+docs/equations.md §3.9 states it; in short, with `p̃_j` the regularised probabilities of §3.4 /
+§3.7 (per-class β), `α_j,i = −log(clip(var_j,i, 0, 0.25) + ε)` and `ᾱ` the running maximum of
+§3.5:
+
+    w_j   = sigmoid(θ · φ_j + b)                        ∈ [0, 1], one weight per pixel
+    s_t,i = (1 − δ) + δ · ᾱ_{t−1,i} / ᾱ_t,i             how much of the prior is kept
+    o_t,i = Σ_j w_j · ((1 − δ) + δ · α_j,i / ᾱ_t,i) · log p̃_j,i
+    g_t   = sigmoid(γ₀ + γ₁ · agree_t + γ₂ · H(P_{t−1}) / log K)    one gate per voxel and frame
+    log P_t = normalise(s_t ⊙ log P_{t−1} + g_t · o_t)
+
+`φ_j` are six features of the pixel's MC moments (`features`): the largest mean probability,
+the margin to the second, the entropy of the mean over log K, the predicted class's α / 10, the
+root of the summed variance, and the predicted class's variance over its largest possible value
+`p(1 − p)`. `agree_t = Σ_i P_{t−1}(i) · softmax(o_t)_i` is how much the frame's observation agrees
+with what the voxel already holds.
+
+Special cases: θ = 0, b = γ₀ = 30, γ₁ = γ₂ = 0 make every weight and gate exactly 1 in float32
+(`sigmoid(30) = 1`), and then δ = 0, β = 0 is Bayes (§3.3); δ = 0 is R (§3.4); δ = 1 is D+R
+(§3.6); δ = 1, β = 0 is D (§3.5) — the same maps up to float32 rounding of the same terms.
+`learned()` with no arguments is D+R at the paper's β; `special_case(name)` gives the others.
+
+All of θ, b, δ, γ, β (and ε, α₀) are traced leaves: `jit`, `vmap` over a stack of parameter
+sets and `grad` work without recompiling when values change. 13 + K parameters (β per class).
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfusion import numerics
+from jaxfusion.rules import base
+from jaxfusion.rules import robust as robust_lib
+from jaxfusion.rules.baselines import log_init, log_posterior
+
+NUM_FEATURES = 6
+FEATURE_NAMES = ("max_prob", "margin", "entropy", "alpha_pred", "sqrt_sum_var", "rel_var_pred")
+# A logit whose sigmoid is exactly 1.0 in float32: the "always on" weight and gate.
+ON = 30.0
+# Scale of the α feature: α of a typical MC-dropout pixel lies in about 2–12.
+_ALPHA_SCALE = 10.0
+PARAM_NAMES = ("theta", "bias", "mix", "gate", "beta", "eps", "alpha0")
+
+
+def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
+  """The six per-pixel features `φ` of one pixel's `(K,)` MC mean and variance (`(6,)` float32),
+  ε the scalar variance shift of α.
+
+  Every feature is finite for any probabilities in [0, 1] and variances ≥ 0, including one-hot
+  means and zero variances.
+  """
+  k = probs.shape[-1]
+  top2 = jax.lax.top_k(probs, 2)[0]
+  pred = jnp.argmax(probs)
+  v_pred = jnp.clip(var[pred], 0.0, 0.25)
+  p_pred = probs[pred]
+  bound = p_pred * (1.0 - p_pred)
+  rel = jnp.where(bound > 0, jnp.minimum(v_pred / jnp.where(bound > 0, bound, 1.0), 1.0), 0.0)
+  sum_var = jnp.sum(jnp.clip(var, 0.0, 0.25))
+  return jnp.stack([
+      top2[0],
+      top2[0] - top2[1],
+      numerics.entropy(probs) / math.log(k),
+      -jnp.log(v_pred + eps) / _ALPHA_SCALE,
+      jnp.sqrt(sum_var + 1e-12),
+      rel,
+  ]).astype(jnp.float32)
+
+
+def pixel_weight(phi: jax.Array, hparams: dict) -> jax.Array:
+  """`w = sigmoid(θ · φ + b)` for `(..., 6)` features: the weight of a pixel's log-likelihood."""
+  return jax.nn.sigmoid(jnp.sum(phi * hparams["theta"], axis=-1) + hparams["bias"])
+
+
+def _check_shapes(hparams, num_classes):
+  base.check_class_shapes(hparams, num_classes, ("beta",))
+  if jnp.shape(hparams["theta"]) != (NUM_FEATURES,):
+    raise ValueError(f"theta must have shape ({NUM_FEATURES},); got {jnp.shape(hparams['theta'])}")
+  if jnp.shape(hparams["gate"]) != (3,):
+    raise ValueError(f"gate must have shape (3,); got {jnp.shape(hparams['gate'])}")
+  for name in ("bias", "mix", "eps", "alpha0"):
+    if jnp.shape(hparams[name]) != ():
+      raise ValueError(f"{name} must be a scalar; got shape {jnp.shape(hparams[name])}")
+
+
+def _init(num_classes, hparams):
+  _check_shapes(hparams, num_classes)
+  row = log_init(num_classes, hparams)
+  row["alpha_bar"] = jnp.full(num_classes, hparams["alpha0"], jnp.float32)
+  return row
+
+
+def _observe(probs, var, hparams):
+  _check_shapes(hparams, probs.shape[-1])
+  shifted = jnp.clip(var, 0.0, 0.25) + hparams["eps"]
+  w = pixel_weight(features(probs, var, hparams["eps"]), hparams)
+  loglik = numerics.safe_log(robust_lib.regularize(probs, hparams["beta"]))
+  wloglik = w * loglik
+  return base.PixelTerms(
+      sums={"wloglik": wloglik, "walpha_loglik": -jnp.log(shifted) * wloglik},
+      maxes={"neg_shifted_var": -shifted})
+
+
+def _update(row, obs, hparams):
+  mix = hparams["mix"]
+  alpha_prev = row["alpha_bar"]
+  least = -obs.maxes["neg_shifted_var"]
+  seen = jnp.isfinite(least) & (least > 0)
+  alpha_bar = jnp.maximum(alpha_prev, jnp.where(seen, -jnp.log(jnp.where(seen, least, 1.0)),
+                                                -jnp.inf))
+  safe = jnp.where(alpha_bar > 0, alpha_bar, 1.0)
+  keep = (1.0 - mix) + mix * (alpha_prev / safe)
+  observation = (1.0 - mix) * obs.sums["wloglik"] + mix * (obs.sums["walpha_loglik"] / safe)
+  prior = jax.nn.softmax(row["logp"])
+  agree = jnp.sum(prior * jax.nn.softmax(observation))
+  spread = numerics.entropy(prior) / math.log(prior.shape[-1])
+  gamma = hparams["gate"]
+  gate = jax.nn.sigmoid(gamma[0] + gamma[1] * agree + gamma[2] * spread)
+  return {"logp": numerics.normalize_log(keep * row["logp"] + gate * observation),
+          "alpha_bar": alpha_bar}
+
+
+def _confidence(row):
+  return row["alpha_bar"]
+
+
+def _concrete_checks(hparams):
+  for name, value in hparams.items():
+    if base.is_concrete(value) and not np.all(np.isfinite(np.asarray(value, np.float64))):
+      raise ValueError(f"{name} must be finite; got {np.asarray(value).tolist()}")
+  mix = hparams["mix"]
+  if base.is_concrete(mix) and not 0.0 <= float(mix) <= 1.0:
+    raise ValueError(f"mix must lie in [0, 1]; got {float(mix)}")
+  robust_lib.check_hparams(hparams["beta"], hparams["eps"], hparams["alpha0"])
+
+
+def learned(params: dict = None, *, aggregate: str = "sum", **overrides) -> base.FusionRule:
+  """The learned rule of docs/equations.md §3.9 (module docstring), from a parameter dict.
+
+  Args:
+    params: any of `theta (6,)`, `bias ()`, `mix ()` δ ∈ [0, 1], `gate (3,)` γ, `beta ()` or
+      `(K,)` ∈ [0, 1], `eps ()` > 0, `alpha0 ()` ≥ 0; missing ones take the D+R values (θ = 0,
+      b = 30, δ = 1, γ = (30, 0, 0), β = 0.3, ε = 1e-12, α₀ = −log 1e-3). Values may be lists,
+      NumPy or JAX arrays, or tracers (for `grad` and `vmap`).
+    aggregate: "sum" or "mean" (docs/equations.md §2.4).
+    **overrides: the same names as keywords, applied over `params`.
+
+  Returns:
+    A FusionRule named "learned" (`requires_var`: its features and D's weighting read the MC
+    variance).
+
+  Raises:
+    ValueError: an unknown parameter name, a wrong shape, a non-finite value, or δ, β, ε, α₀
+      out of range (checked where concrete).
+  """
+  values = {"theta": np.zeros(NUM_FEATURES, np.float32), "bias": ON, "mix": 1.0,
+            "gate": np.array([ON, 0.0, 0.0], np.float32), "beta": robust_lib.DEFAULT_BETA,
+            "eps": robust_lib.DEFAULT_EPS, "alpha0": robust_lib.DEFAULT_ALPHA0}
+  given = {**(params or {}), **overrides}
+  unknown = set(given) - set(values)
+  if unknown:
+    raise ValueError(f"unknown learned-rule parameters {sorted(unknown)}; the names are "
+                     f"{', '.join(PARAM_NAMES)}")
+  values.update(given)
+  hparams = {name: jnp.asarray(value, jnp.float32) for name, value in values.items()}
+  hparams["beta"] = base.as_class_leaf(values["beta"], "beta")
+  if hparams["theta"].shape != (NUM_FEATURES,) or hparams["gate"].shape != (3,):
+    raise ValueError(f"theta must have shape ({NUM_FEATURES},) and gate (3,); got "
+                     f"{hparams['theta'].shape} and {hparams['gate'].shape}")
+  for name in ("bias", "mix", "eps", "alpha0"):
+    if hparams[name].ndim:
+      raise ValueError(f"{name} must be a scalar; got shape {hparams[name].shape}")
+  _concrete_checks(hparams)
+  return base.FusionRule(
+      hparams=hparams, name="learned", init=_init, observe=_observe, update=_update,
+      posterior=log_posterior, confidence=_confidence, requires_var=True,
+      aggregate=base.check_aggregate(aggregate))
+
+
+def special_case(name: str, *, beta=robust_lib.DEFAULT_BETA) -> dict:
+  """Parameters that make `learned` one of the paper's rules: "bayes", "robust_r", "robust_d"
+  or "robust_dr" (every weight and gate exactly 1)."""
+  mixes = {"bayes": 0.0, "robust_r": 0.0, "robust_d": 1.0, "robust_dr": 1.0}
+  if name not in mixes:
+    raise ValueError(f"the learned rule contains bayes, robust_r, robust_d and robust_dr; got "
+                     f"{name!r}")
+  return {"mix": mixes[name], "beta": beta if name in ("robust_r", "robust_dr") else 0.0}
