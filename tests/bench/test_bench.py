@@ -52,13 +52,14 @@ def test_bench_suite_runs_on_a_tiny_configuration(tmp_path):
   floor = data["floor"]
   assert floor["floor_ms"] == min(floor["forms_ms"].values()) > 0
   assert floor["dr_over_floor"] == pytest.approx(floor["dr_core_ms"] / floor["floor_ms"])
-  assert all(data["loops"][f"{way}_ms_per_frame"] > 0 for way in ("loop", "sequence", "batch"))
+  assert all(data["loops"][f"{way}_ms_per_frame"] > 0
+             for way in ("loop", "sequence", "sequence_core", "batch"))
   assert data["aligned"]["occupied"] > 0
   (sampler,) = data["sampler"]
   assert sampler["speedup"] == pytest.approx(sampler["full_passes_ms"] / sampler["shared_ms"])
   assert {r["num_classes"] for r in data["numpy_peer"]} == {13}
   text = (tmp_path / "results.md").read_text()
-  assert "× the floor" in text and "full passes ms" in text and "fuse_batch (B = 1)" in text
+  assert "× the floor" in text and "full passes ms" in text and "fuse_sequence core" in text
   assert all(r["numpy_sum0_ms"] > 0 for r in data["mc_moments"])
   assert "The whole pipeline" in (tmp_path / "results.md").read_text()
 
