@@ -353,8 +353,9 @@ def loop_rows(frames, config) -> dict:
     return holder["sequence"]
 
   def core():
-    holder["core"] = fusion.fuse_sequence_donating(holder["core"], stacked, frames.camera, rule)
-    return holder["core"]
+    holder["sequence_core"] = fusion.fuse_sequence_donating(holder["sequence_core"], stacked,
+                                                            frames.camera, rule)
+    return holder["sequence_core"]
 
   def batch():
     return jf.fuse_batch(batched, frames.camera, rule, capacity=config.capacity,
