@@ -17,6 +17,7 @@
   tune-compare    which tuning objective tracks the mIoU optimum (`lab.tuning`)
   tune-protocol   tune β on calibration layouts, judge on held-out ones (`lab.tuning`)
   simulate-sweep  fusion rules on a grid of a simulated front end (`lab.simulate`)
+  learn-rule      fit the learned fusion rule on calibration layouts (`lab.learning`)
 
 Each command module offers `add_parser(subparsers)` and `main(args) -> int`; shared flags are
 in `lab.flags`. Errors a user can fix (a wrong sequence spec, an unreadable folder, an unknown
@@ -29,7 +30,8 @@ import importlib
 import sys
 
 # The modules that register commands, in the order of `jaxfusion --help`.
-COMMAND_MODULES = ("demo", "maps", "data", "viewer.command", "study", "tuning", "simulate")
+COMMAND_MODULES = ("demo", "maps", "data", "viewer.command", "study", "tuning", "simulate",
+                   "learning")
 
 
 def build_parser() -> argparse.ArgumentParser:

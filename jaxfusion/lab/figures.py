@@ -383,3 +383,49 @@ def simulation_heatmap(path: str, result: dict) -> None:
   fig.tight_layout()
 
   _save(fig, path, dpi=110, tight=False)
+
+
+def learned_rule_losses(path: str, result) -> None:
+  """`learn-rule`'s loss curves: the training loss per step and the validation loss per
+  evaluation, the kept step marked."""
+  plt = _pyplot()
+  fig, ax = plt.subplots(figsize=(5.5, 3.4))
+  ax.plot(np.arange(len(result.train_losses)), result.train_losses, lw=1, label="training")
+  steps, losses = zip(*result.validation)
+  ax.plot(steps, losses, "o-", ms=3, label="validation (early stopping)")
+  ax.axvline(result.best_step, color="gray", ls="--", lw=1, label=f"kept: step {result.best_step}")
+  ax.set_xlabel("Adam step")
+  ax.set_ylabel("cross-entropy −log P(gt)")
+  ax.grid(alpha=0.3)
+  ax.legend(fontsize=8)
+  fig.tight_layout()
+  _save(fig, path, tight=False)
+
+
+def learned_rule_weights(path: str, hparams: dict, *, num_classes: int,
+                         alpha_bar=(6.9078, 12.0)) -> None:
+  """The learned per-pixel weight `w` over (α of the predicted class, max probability), beside
+  D's weight of a pixel's log-likelihood relative to the voxel's running maximum, α/ᾱ."""
+  from jaxfusion import learn  # pylint: disable=import-outside-toplevel
+  plt = _pyplot()
+  alphas = np.linspace(1.4, 14.0, 64)
+  tops = np.linspace(1.0 / num_classes + 1e-3, 1.0, 64)
+  grid = np.asarray(learn.weight_grid(hparams, alphas, tops, num_classes=num_classes))
+  fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+  im = a.imshow(grid.T, origin="lower", aspect="auto", vmin=0, vmax=1, cmap="viridis",
+                extent=(alphas[0], alphas[-1], tops[0], tops[-1]))
+  fig.colorbar(im, ax=a, label="w")
+  a.set_xlabel("α of the predicted class, −log(var + ε)")
+  a.set_ylabel("max probability")
+  a.set_title("learned weight w = sigmoid(θ·φ + b)")
+  for bar in alpha_bar:
+    b.plot(alphas, np.minimum(alphas / bar, 1.0), label=f"D: α/ᾱ, ᾱ = {bar:g}")
+  b.plot(alphas, grid[:, -1], "k--", label="learned w at max prob 1")
+  b.plot(alphas, grid[:, len(tops) // 2], "k:", label=f"learned w at max prob {tops[32]:.2f}")
+  b.set_xlabel("α of the predicted class")
+  b.set_ylabel("weight of the pixel's log-likelihood")
+  b.set_ylim(0, 1.05)
+  b.grid(alpha=0.3)
+  b.legend(fontsize=8)
+  fig.tight_layout()
+  _save(fig, path, tight=False)

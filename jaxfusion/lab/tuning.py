@@ -355,7 +355,7 @@ def format_protocol(result: dict, class_names: Sequence[str]) -> str:
 
 
 # --- command line --------------------------------------------------------------------------------
-def _add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust rule: R, D "
+def add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust rule: R, D "
                    "or D+R", layout_seeds: bool = True) -> None:
   flags.add_sizes(parser, frames=20, height=60, width=80, samples=False)
   parser.add_argument("--voxel-size", type=float, default=0.1, help="voxel edge in metres")
@@ -383,7 +383,7 @@ def _add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust 
   parser.add_argument("--json", default=None, help="write the results as JSON here")
 
 
-def _front_end(args):
+def front_end_of(args):
   if args.front_end == "simulated":
     return None
   if args.predictions is not None:
@@ -391,7 +391,7 @@ def _front_end(args):
   return frontend.FrontEnd(args.checkpoint)
 
 
-def _data_kwargs(args, front_end=None) -> dict:
+def data_kwargs(args, front_end=None) -> dict:
   return {"num_frames": args.frames, "height": args.height, "width": args.width,
           "voxel_size": args.voxel_size, "predictions": args.predictions,
           "num_samples": args.num_samples, "shift": args.shift, "front_end": front_end,
@@ -435,7 +435,7 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--beta-min", type=float, default=0.0)
   parser.add_argument("--beta-max", type=float, default=1.0)
   parser.add_argument("--plot", default=None, help="save a plot of mIoU against β here (PNG)")
-  _add_data_args(parser)
+  add_data_args(parser)
   parser.set_defaults(func=sweep_command)
   return parser
 
@@ -462,7 +462,7 @@ def add_tune_beta_parser(subparsers) -> argparse.ArgumentParser:
                       help="surrogate to minimise")
   parser.add_argument("--per-class", action="store_true",
                       help="fit one value per class for each tuned hyperparameter")
-  _add_data_args(parser)
+  add_data_args(parser)
   parser.set_defaults(func=tune_beta_command)
   return parser
 
@@ -479,7 +479,7 @@ def _add_protocol_args(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--steps", type=int, default=40)
   parser.add_argument("--learning-rate", type=float, default=0.1)
   parser.add_argument("--out", default="outputs/tune", help="output folder")
-  _add_data_args(parser, rule_help="robust rule with β: R or D+R", layout_seeds=False)
+  add_data_args(parser, rule_help="robust rule with β: R or D+R", layout_seeds=False)
 
 
 def add_tune_compare_parser(subparsers) -> argparse.ArgumentParser:
@@ -518,7 +518,7 @@ def add_tune_protocol_parser(subparsers) -> argparse.ArgumentParser:
 def sweep_command(args) -> int:
   """Runs `jaxfusion sweep`; returns the exit status."""
   data = load_calibration_sequence(args.sequence, seed=flags.one_layout_seed(args),
-                                   **_data_kwargs(args, _front_end(args)))
+                                   **data_kwargs(args, front_end_of(args)))
   betas = np.linspace(args.beta_min, args.beta_max, args.num_betas)
   start = time.perf_counter()
   out = sweep_beta(data["frames"], data["camera"], data["gt"]["coords"], data["gt"]["labels"],
@@ -555,7 +555,7 @@ def _fmt(value) -> str:
 def tune_beta_command(args) -> int:
   """Runs `jaxfusion tune-beta`; returns the exit status."""
   train = tuple(t.strip() for t in args.tune.split(",") if t.strip())
-  kwargs = _data_kwargs(args, _front_end(args))
+  kwargs = data_kwargs(args, front_end_of(args))
   cal = load_calibration_sequence(args.calibration, seed=flags.one_layout_seed(args), **kwargs)
   start = time.perf_counter()
   result = tune_hparams(cal["frames"], cal["camera"], cal["gt"]["coords"],
@@ -604,7 +604,7 @@ def _protocol_batches(args) -> tuple:
   if overlap:
     raise ValueError(f"calibration and held-out layout seeds must be disjoint; both have "
                      f"{sorted(overlap)}")
-  kwargs = _data_kwargs(args, _front_end(args))
+  kwargs = data_kwargs(args, front_end_of(args))
   units = lambda seeds: [(e, t, s) for s in seeds for e in args.envs for t in args.trajectories]
   return (load_sequence_batch(units(args.calibration_seeds), **kwargs),
           load_sequence_batch(units(args.held_out_seeds), **kwargs))

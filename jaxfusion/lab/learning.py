@@ -1,0 +1,175 @@
+"""`jaxfusion learn-rule`: fit the learned fusion rule by gradient through fusion on calibration
+layouts, with early stopping on other layouts, and write its parameters and a record.
+
+The training layouts and the validation layouts are disjoint from each other and from every
+layout the rules are judged on (the demo's seed 0, the study's 1–3, the tuning protocol's 1–3).
+Sequences at several domain shifts go into one training batch. Outputs under `--out`:
+`params.json` (what `rules.learned` takes; `load_params` reads it), `record.json` (data, settings,
+steps, loss curves, time), `loss.png` and `weights.png` (the learned per-pixel weight over α and
+the max probability, beside D's α/ᾱ).
+"""
+
+import argparse
+import json
+import os
+import time
+from typing import Sequence
+
+import numpy as np
+
+from jaxfusion import learn
+from jaxfusion import rules as rules_lib
+from jaxfusion.lab import figures
+from jaxfusion.lab import reports
+from jaxfusion.lab import tuning
+
+DEFAULT_OUT = "outputs/learned_rule"
+TRAIN_SEEDS = (11, 12)
+VALIDATION_SEEDS = (13,)
+# Layout seeds some command judges rules on: a learned rule must never see them.
+JUDGED_SEEDS = (0, 1, 2, 3)
+
+
+def load_params(path: str) -> dict:
+  """The parameters in a `params.json` written by `learn-rule` (a dict for `rules.learned`)."""
+  with open(path, encoding="utf-8") as f:
+    payload = json.load(f)
+  params = payload.get("params") if isinstance(payload, dict) else None
+  if not isinstance(params, dict):
+    raise ValueError(f"{path} is not a learned-rule parameter file (no 'params' object)")
+  rules_lib.learned(params)      # validates names, shapes and ranges
+  return params
+
+
+def merge_batches(batches: Sequence[dict]) -> dict:
+  """One batch of the sequences of several `tuning.load_sequence_batch` batches (equal T, H, W
+  and camera), the GT padded to the longest."""
+  frames = [b["frames"] for b in batches]
+  shapes = {np.shape(f.depth)[1:] for f in frames}
+  if len(shapes) != 1:
+    raise ValueError(f"batches to merge must share T, H and W; got {sorted(shapes)}")
+  cat = lambda xs: None if xs[0] is None else np.concatenate(xs)
+  merged = type(frames[0])(*(cat([getattr(f, name) for f in frames])
+                             for name in frames[0]._fields))
+  width = max(b["coords"].shape[1] for b in batches)
+  pad = lambda x, fill: np.concatenate(
+      [x, np.full((x.shape[0], width - x.shape[1]) + x.shape[2:], fill, x.dtype)], axis=1)
+  return {"names": [n for b in batches for n in b["names"]], "frames": merged,
+          "mask": np.concatenate([b["mask"] for b in batches]), "camera": batches[0]["camera"],
+          "coords": np.concatenate([pad(b["coords"], 0) for b in batches]),
+          "labels": np.concatenate([pad(b["labels"], -1) for b in batches]),
+          "capacity": max(b["capacity"] for b in batches),
+          "num_classes": batches[0]["num_classes"], "source": batches[0]["source"]}
+
+
+def add_parser(subparsers) -> None:
+  """Adds `learn-rule`."""
+  parser = subparsers.add_parser(
+      "learn-rule", help="fit the learned fusion rule on calibration layouts (gradient through "
+                         "fusion, early stopping on other layouts)",
+      description="Fits rules.learned (docs/equations.md §3.9) by Adam on the cross-entropy of "
+                  "the fused voxel posteriors against GT voxel labels, through the whole scan "
+                  "of frames, on the training layout seeds at every --shifts value; stops when "
+                  "the same loss on the validation seeds has not improved for --patience "
+                  "evaluations; writes params.json, record.json, loss.png and weights.png.")
+  parser.add_argument("--envs", nargs="+", choices=("office", "house"),
+                      default=["office", "house"])
+  parser.add_argument("--trajectories", nargs="+", type=int, choices=(0, 1, 2),
+                      default=[0, 1, 2])
+  parser.add_argument("--train-seeds", nargs="+", type=int, default=list(TRAIN_SEEDS),
+                      help="layout seeds of the training sequences")
+  parser.add_argument("--validation-seeds", nargs="+", type=int,
+                      default=list(VALIDATION_SEEDS),
+                      help="layout seeds of the early-stopping sequences (disjoint from the "
+                           "training ones)")
+  parser.add_argument("--shifts", nargs="+", type=float, default=[0.5, 1.0],
+                      help="test-domain shifts the sequences are rendered at")
+  parser.add_argument("--steps", type=int, default=150, help="at most this many Adam steps")
+  parser.add_argument("--learning-rate", type=float, default=0.05)
+  parser.add_argument("--eval-every", type=int, default=10)
+  parser.add_argument("--patience", type=int, default=4)
+  parser.add_argument("--scalar-beta", action="store_true", help="one β (default: per class)")
+  parser.add_argument("--out", default=DEFAULT_OUT, help="output folder")
+  parser.add_argument("--quick", action="store_true",
+                      help="smoke run: one env, one trajectory, one shift, 8 small frames, "
+                           "6 steps")
+  tuning.add_data_args(parser, rule_help=argparse.SUPPRESS, layout_seeds=False)
+  parser.set_defaults(func=command, front_end="shipped")
+
+
+def _check_seeds(train: Sequence[int], validation: Sequence[int]) -> None:
+  overlap = set(train) & set(validation)
+  if overlap:
+    raise ValueError(f"training and validation layout seeds must be disjoint; both have "
+                     f"{sorted(overlap)}")
+  judged = (set(train) | set(validation)) & set(JUDGED_SEEDS)
+  if judged:
+    raise ValueError(f"layout seeds {sorted(judged)} are those the rules are judged on (demo, "
+                     f"study, tuning protocol: {list(JUDGED_SEEDS)}); train on others")
+
+
+def command(args) -> int:
+  """Runs `jaxfusion learn-rule`; returns the exit status."""
+  if args.quick:
+    args.envs, args.trajectories, args.shifts = args.envs[:1], [0], args.shifts[-1:]
+    args.frames, args.height, args.width, args.steps = 8, 30, 40, 6
+    args.eval_every, args.patience = 2, 2
+  _check_seeds(args.train_seeds, args.validation_seeds)
+  started = time.perf_counter()
+  front_end = tuning.front_end_of(args)
+  kwargs = tuning.data_kwargs(args, front_end)
+
+  def load(seeds):
+    batches = []
+    for shift in args.shifts:
+      units = [(e, t, s) for s in seeds for e in args.envs for t in args.trajectories]
+      batches.append(tuning.load_sequence_batch(units, **{**kwargs, "shift": shift}))
+    return merge_batches(batches)
+
+  train, validation = load(args.train_seeds), load(args.validation_seeds)
+  loaded = time.perf_counter() - started
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  bar = tqdm(total=args.steps, desc="learn-rule", unit="step")
+
+  def progress(step, loss, val):
+    bar.update(1)
+    bar.set_postfix(loss=f"{loss:.4f}", **({} if val is None else {"val": f"{val:.4f}"}))
+
+  result = learn.fit(train, validation, steps=args.steps, learning_rate=args.learning_rate,
+                     eval_every=args.eval_every, patience=args.patience,
+                     per_class_beta=not args.scalar_beta, aggregate=args.aggregate,
+                     voxel_size=args.voxel_size, progress=progress)
+  bar.close()
+  os.makedirs(args.out, exist_ok=True)
+  reports.write_json(os.path.join(args.out, "params.json"),
+                     {"rule": "learned", "params": result.params}, indent=2)
+  record = {
+      "command": "jaxfusion learn-rule " + " ".join(
+          f"--{k.replace('_', '-')} {v}" for k, v in sorted(vars(args).items())
+          if k not in ("func",) and v not in (None, False)),
+      "data": {"train": train["names"], "validation": validation["names"],
+               "shifts": args.shifts, "frames": args.frames, "height": args.height,
+               "width": args.width, "num_samples": args.num_samples,
+               "front_end": train["source"], "voxel_size": args.voxel_size},
+      "objective": "cross_entropy", "steps_run": result.steps_run,
+      "stopped_early": result.stopped_early, "best_step": result.best_step,
+      "train_losses": result.train_losses, "validation": result.validation,
+      "seconds": {"data": loaded, "fit": result.seconds,
+                  "total": time.perf_counter() - started},
+      "params": result.params}
+  reports.write_json(os.path.join(args.out, "record.json"), record, indent=2)
+  figures.learned_rule_losses(os.path.join(args.out, "loss.png"), result)
+  figures.learned_rule_weights(os.path.join(args.out, "weights.png"), result.rule.hparams,
+                               num_classes=train["num_classes"])
+  best = dict(result.validation)[result.best_step]
+  print(f"learned rule: best validation loss {best:.4f} at step {result.best_step} of "
+        f"{result.steps_run} ({result.seconds:.0f} s fitting); wrote {args.out}/params.json, "
+        f"record.json, loss.png, weights.png")
+  return 0
+
+
+def main(args: argparse.Namespace) -> int:
+  """Runs the parsed command."""
+  return args.func(args)
+
+

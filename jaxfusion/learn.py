@@ -1,0 +1,221 @@
+"""Fitting the learned rule (`rules.learned`, docs/equations.md §3.9) by gradient through fusion.
+
+The loss is `tune.sequence_loss` of the fused maps against GT voxel labels (the mean
+cross-entropy `−log P(gt)` over the GT voxels the maps hold, by default), differentiated through
+the whole `lax.scan` of frames with respect to the rule's parameters, and minimised with Adam.
+The parameters are optimised unconstrained (`constrain`): θ, b and γ as they are, `δ =
+sigmoid(m)` and `β = sigmoid(u)` (per class), so every step gives a valid rule; ε and α₀ stay
+fixed. Early stopping watches the same loss on a validation batch (other layouts than the
+training ones, never those the rule is judged on) every `eval_every` steps and keeps the best
+parameters seen.
+
+`fit` works on batches of sequences as `lab.tuning.load_sequence_batch` builds them: a dict
+with `frames` `(B, T, …)`, `mask` `(B, T)`, `camera`, `coords` `(B, N, 3)`, `labels` `(B, N)`
+and `capacity`.
+
+Shape legend: B sequences, T frames, K classes, N GT voxels.
+"""
+
+import dataclasses
+import functools
+import importlib
+import time
+from typing import Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxfusion import batch
+from jaxfusion import rules as rules_lib
+from jaxfusion import tune
+
+# The module (`jaxfusion.rules.learned` the attribute is the `learned` factory).
+learned_lib = importlib.import_module("jaxfusion.rules.learned")
+
+TRAINED = ("theta", "bias", "mix", "gate", "beta")
+# Where the parameters start (constrained values): D+R at the paper's β, with the weights and the
+# gate at sigmoid(3) ≈ 0.95 — inside the sigmoid's slope, so their gradients are not zero (at the
+# exact special case, sigmoid(30), they would be).
+START = {"theta": np.zeros(learned_lib.NUM_FEATURES, np.float32), "bias": 3.0, "mix": 0.9,
+         "gate": np.array([3.0, 0.0, 0.0], np.float32), "beta": 0.3}
+
+
+def constrain(params: dict) -> dict:
+  """Unconstrained parameters → the learned rule's: `mix = sigmoid(mix)`, `beta =
+  sigmoid(beta)`, the rest unchanged."""
+  out = dict(params)
+  for name in ("mix", "beta"):
+    if name in out:
+      out[name] = jax.nn.sigmoid(out[name])
+  return out
+
+
+def unconstrain(values: dict) -> dict:
+  """Inverse of `constrain` (δ and β clamped into [1e-4, 1 − 1e-4] first)."""
+  out = {}
+  for name, value in values.items():
+    value = jnp.asarray(value, jnp.float32)
+    if name in ("mix", "beta"):
+      value = jnp.clip(value, 1e-4, 1.0 - 1e-4)
+      value = jnp.log(value) - jnp.log1p(-value)
+    out[name] = value
+  return out
+
+
+def start_params(num_classes: int, *, start: Optional[dict] = None,
+                 per_class_beta: bool = True) -> dict:
+  """Unconstrained starting parameters (`START`, overridden by `start`), β broadcast to K."""
+  values = {**START, **(start or {})}
+  unknown = set(values) - set(TRAINED)
+  if unknown:
+    raise ValueError(f"unknown learned-rule parameters to train {sorted(unknown)}; trained are "
+                     f"{', '.join(TRAINED)}")
+  if per_class_beta:
+    values["beta"] = np.broadcast_to(np.asarray(values["beta"], np.float32), (num_classes,))
+  return unconstrain(values)
+
+
+@dataclasses.dataclass
+class FitResult:
+  """Output of `fit`.
+
+  Attributes:
+    params: the learned rule's parameters at the best validation loss (floats and lists).
+    rule: `rules.learned(params, aggregate=...)`.
+    train_losses: the training loss before each step.
+    validation: `(step, loss)` pairs, one per evaluation (step 0 is the start).
+    best_step: the step whose parameters were kept.
+    steps_run: steps taken before stopping.
+    stopped_early: True if the patience ran out before `steps`.
+    seconds: wall time of the fit.
+  """
+  params: dict
+  rule: rules_lib.FusionRule
+  train_losses: list
+  validation: list
+  best_step: int
+  steps_run: int
+  stopped_early: bool
+  seconds: float
+
+
+def _loss_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float,
+             objective: str) -> Callable:
+  frames = jax.tree.map(jnp.asarray, data["frames"])
+  mask = jnp.asarray(data["mask"])
+  coords = jnp.asarray(data["coords"], jnp.int32)
+  labels = jnp.asarray(data["labels"], jnp.int32)
+  camera, _ = batch.camera_batch(data["camera"], None)
+  capacity = int(data["capacity"])
+
+  def loss(params):
+    rule = rules_lib.learned({**fixed, **constrain(params)}, aggregate=aggregate)
+    return tune.sequence_loss(rule, frames, camera, coords, labels, capacity=capacity,
+                              voxel_size=voxel_size, mask=mask, objective=objective)
+  return loss
+
+
+def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float = 0.05,
+        eval_every: int = 10, patience: int = 5, start: Optional[dict] = None,
+        per_class_beta: bool = True, eps: float = 1e-12,
+        alpha0: float = rules_lib.DEFAULT_ALPHA0, aggregate: str = "sum",
+        voxel_size: float = 0.1, objective: str = "cross_entropy",
+        progress: Optional[Callable[[int, float, Optional[float]], None]] = None) -> FitResult:
+  """Fits the learned rule on `train` with Adam, stopping early on `validation`.
+
+  Args:
+    train: the training batch (see the module docstring).
+    validation: a batch of other layouts, for early stopping.
+    steps: at most this many Adam steps.
+    learning_rate: Adam step size in the unconstrained parameters.
+    eval_every: evaluate the validation loss every this many steps.
+    patience: stop after this many evaluations without a better validation loss.
+    start: starting values (constrained) of some of `TRAINED` (default `START`, D+R-like).
+    per_class_beta: fit one β per class (else one scalar).
+    eps: ε of α, fixed.
+    alpha0: α₀, fixed.
+    aggregate: "sum" or "mean".
+    voxel_size: voxel edge in metres (the GT's).
+    objective: `tune.OBJECTIVES`.
+    progress: called as `progress(step, train_loss, validation_loss or None)` after each step.
+
+  Returns:
+    FitResult.
+
+  Raises:
+    ValueError: steps, eval_every or patience < 1, batches with different K, an unknown
+      objective or start parameter.
+  """
+  for name, value in (("steps", steps), ("eval_every", eval_every), ("patience", patience)):
+    if int(value) < 1:
+      raise ValueError(f"{name} must be >= 1; got {value}")
+  tune.check_objective(objective)
+  num_classes = int(np.shape(train["frames"].probs)[-1])
+  if int(np.shape(validation["frames"].probs)[-1]) != num_classes:
+    raise ValueError("the training and validation batches must have the same classes (K)")
+  fixed = {"eps": jnp.float32(eps), "alpha0": jnp.float32(alpha0)}
+  settings = dict(fixed=fixed, aggregate=aggregate, voxel_size=voxel_size, objective=objective)
+  train_loss = _loss_fn(train, **settings)
+  val_loss = jax.jit(_loss_fn(validation, **settings))
+  optimizer = optax.adam(learning_rate)
+
+  @jax.jit
+  def step_fn(params, opt_state):
+    value, grads = jax.value_and_grad(train_loss)(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, value
+
+  started = time.perf_counter()
+  params = start_params(num_classes, start=start, per_class_beta=per_class_beta)
+  opt_state = optimizer.init(params)
+  best = (float(val_loss(params)), 0, params)
+  history, losses, waited, step = [(0, best[0])], [], 0, 0
+  while step < steps and waited < patience:
+    params, opt_state, value = step_fn(params, opt_state)
+    step += 1
+    losses.append(float(value))
+    current = None
+    if step % eval_every == 0 or step == steps:
+      current = float(val_loss(params))
+      history.append((step, current))
+      if current < best[0]:
+        best, waited = (current, step, params), 0
+      else:
+        waited += 1
+    if progress is not None:
+      progress(step, losses[-1], current)
+  values = {**{k: float(v) for k, v in fixed.items()},
+            **{k: _plain(v) for k, v in constrain(best[2]).items()}}
+  return FitResult(params=values, rule=rules_lib.learned(values, aggregate=aggregate),
+                   train_losses=losses, validation=history, best_step=best[1], steps_run=step,
+                   stopped_early=step < steps, seconds=time.perf_counter() - started)
+
+
+def _plain(x):
+  x = np.asarray(x, np.float64)
+  return float(x) if x.ndim == 0 else x.tolist()
+
+
+@functools.partial(jax.jit, static_argnames=("num_classes",))
+def weight_grid(hparams: dict, alpha_pred: jax.Array, max_prob: jax.Array, *,
+                num_classes: int) -> jax.Array:
+  """The learned per-pixel weight `w` on a grid of (α of the predicted class, max probability),
+  for figures: each grid pixel is a K-class mean with that max probability, the rest spread
+  evenly, and the predicted class's variance `exp(−α) − ε` (the others 0).
+
+  Args:
+    hparams: the rule's parameters (`rule.hparams`).
+    alpha_pred: `(A,)` α values.
+    max_prob: `(P,)` max probabilities in [1/K, 1].
+
+  Returns:
+    `(A, P)` float32 weights in [0, 1].
+  """
+  def one(alpha, top):
+    rest = (1.0 - top) / (num_classes - 1)
+    probs = jnp.full(num_classes, rest).at[0].set(top)
+    var = jnp.zeros(num_classes).at[0].set(jnp.maximum(jnp.exp(-alpha) - hparams["eps"], 0.0))
+    return learned_lib.pixel_weight(learned_lib.features(probs, var, hparams["eps"]), hparams)
+  return jax.vmap(lambda a: jax.vmap(lambda p: one(a, p))(max_prob))(alpha_pred)

@@ -1,0 +1,91 @@
+"""Fitting the learned rule by gradient through fusion: the fit lowers the training loss, keeps the
+best validation point, stops early, returns a valid rule, and refuses bad settings."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfusion as jf
+from jaxfusion import learn
+from tests.library.test_tune import batch_of
+
+
+@pytest.fixture(scope="module")
+def batches():
+  return batch_of([0, 1]), batch_of([2, 3])
+
+
+def test_constrain_round_trip_and_start_is_dr_like():
+  values = {"theta": np.arange(6.0), "bias": 2.0, "mix": 0.3, "gate": [1.0, 2.0, 3.0],
+            "beta": [0.1, 0.5, 0.9]}
+  back = learn.constrain(learn.unconstrain(values))
+  for name, value in values.items():
+    np.testing.assert_allclose(np.asarray(back[name]), np.asarray(value), rtol=1e-5, atol=1e-6)
+  start = learn.constrain(learn.start_params(4))
+  assert np.asarray(start["beta"]).shape == (4,)
+  np.testing.assert_allclose(np.asarray(start["beta"]), 0.3, rtol=1e-5)
+  assert float(start["mix"]) == pytest.approx(0.9)
+  with pytest.raises(ValueError, match="unknown learned-rule parameters to train"):
+    learn.start_params(4, start={"eps": 1.0})
+
+
+def test_fit_lowers_the_loss_and_keeps_the_best_validation_point(batches):
+  train, validation = batches
+  seen = []
+  res = learn.fit(train, validation, steps=12, learning_rate=0.1, eval_every=3, patience=10,
+                  voxel_size=0.25,
+                  progress=lambda step, loss, val: seen.append((step, loss, val)))
+  assert res.steps_run == 12 and not res.stopped_early and len(seen) == 12
+  assert res.train_losses[-1] < res.train_losses[0]
+  steps, losses = zip(*res.validation)
+  assert steps == (0, 3, 6, 9, 12)
+  assert res.best_step == steps[int(np.argmin(losses))]
+  assert res.rule.name == "learned" and np.asarray(res.params["beta"]).shape == (4,)
+  assert 0.0 <= res.params["mix"] <= 1.0
+  assert all(0.0 <= b <= 1.0 for b in res.params["beta"])
+  json.dumps(res.params)                           # plain floats and lists
+  # The returned rule is the kept parameters: its validation loss is the best one recorded.
+  from jaxfusion import tune  # pylint: disable=import-outside-toplevel
+  loss = tune.sequence_loss(res.rule, validation["frames"], validation["camera"],
+                            validation["coords"], validation["labels"],
+                            capacity=validation["capacity"], voxel_size=0.25,
+                            mask=validation["mask"])
+  assert float(loss) == pytest.approx(min(losses), rel=1e-4)
+
+
+def test_fit_stops_when_validation_does_not_improve(batches):
+  train, validation = batches
+  # A huge step size overshoots at once: validation never beats the start, patience 1 stops it.
+  res = learn.fit(train, validation, steps=50, learning_rate=50.0, eval_every=1, patience=1,
+                  voxel_size=0.25)
+  assert res.stopped_early and res.steps_run < 50
+  if res.best_step == 0:
+    start = learn.constrain(learn.start_params(4))
+    np.testing.assert_allclose(res.params["beta"], np.asarray(start["beta"]), rtol=1e-5)
+
+
+def test_fit_refuses_bad_settings(batches):
+  train, validation = batches
+  with pytest.raises(ValueError, match="steps must be >= 1"):
+    learn.fit(train, validation, steps=0)
+  with pytest.raises(ValueError, match="patience must be >= 1"):
+    learn.fit(train, validation, patience=0)
+  with pytest.raises(ValueError, match="objective"):
+    learn.fit(train, validation, objective="miou")
+
+
+def test_weight_grid_matches_the_rule_and_is_in_range():
+  rule = jf.rules.learned(theta=[1.0, -2.0, 0.5, 0.8, -1.0, 0.3], bias=0.2)
+  alphas = jnp.linspace(1.0, 12.0, 5)
+  tops = jnp.linspace(0.3, 1.0, 4)
+  grid = np.asarray(learn.weight_grid(rule.hparams, alphas, tops, num_classes=4))
+  assert grid.shape == (5, 4) and np.all((grid >= 0) & (grid <= 1))
+  assert grid.std() > 1e-3
+  jf_learned = __import__("importlib").import_module("jaxfusion.rules.learned")
+  probs = jnp.asarray([0.3, 0.7 / 3, 0.7 / 3, 0.7 / 3])
+  var = jnp.asarray([np.exp(-1.0) - 1e-12, 0.0, 0.0, 0.0])
+  w = jf_learned.pixel_weight(jf_learned.features(probs, var, 1e-12), rule.hparams)
+  assert float(w) == pytest.approx(float(grid[0, 0]), rel=1e-5)
