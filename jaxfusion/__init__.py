@@ -12,6 +12,7 @@ This package is the library. The application (commands, studies, figures, the vi
 from jaxfusion import batch
 from jaxfusion import datasets
 from jaxfusion import io
+from jaxfusion import learn
 from jaxfusion import metrics
 from jaxfusion import rules
 from jaxfusion import sources
@@ -49,7 +50,7 @@ __version__ = "0.1.0"
 __all__ = sorted([
     "Camera", "ClassMap", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "Mapper",
     "QueryResult", "batch", "calibration_loss", "capacity_for", "datasets", "fuse_batch",
-    "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "make_mesh",
-    "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules", "sources",
-    "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
+    "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "learn",
+    "make_mesh", "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules",
+    "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
 ])

@@ -3,7 +3,6 @@ best validation point, stops early, returns a valid rule, and refuses bad settin
 
 import json
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
