@@ -1,4 +1,4 @@
-"""`python -m bench.micro [terms|moments]`: the two A/B micro-benchmarks quoted in RESULTS.md.
+"""`python -m bench.micro [terms|moments|outer-jit]`: the A/B micro-benchmarks quoted in RESULTS.md.
 
 * `terms`: D+R's per-pixel terms (two logarithms per class) of a 640×480, K = 13 frame, reduced
   (a) over 10 dynamically sliced blocks in a `fori_loop` as `fuse_frame` does, (b) in one fused
@@ -7,6 +7,10 @@
 * `moments`: forms of the MC moments of a (32, 480, 640, 13) stack against NumPy's
   `samples.sum(0)`: `jaxfusion.mc_moments` (fused groups of 32), groups of 8 in a `fori_loop`, a
   `fori_loop` over single samples, and the old two-pass `jnp.mean` form.
+* `outer-jit`: a user's Python loop of `jf.fuse_frame` over 4 frames (640×480, K = 13, D+R) inside
+  one `jax.jit` that donates the map at the top, against the same loop of the donating step;
+  per frame (divide by 4), plus the outer program's XLA buffer sizes (an aliased map is not
+  copied per frame).
 
 Every variant is called in turn, repeatedly, in one process, so all see the same machine load;
 the tables give min and median ms.
@@ -117,15 +121,53 @@ def moments(repeats: int = 7, num_samples: int = 32, height: int = 480, width: i
   return _interleaved(fns, (xj,), repeats)
 
 
+def outer_jit(repeats: int = 7, num_frames: int = 4, height: int = 480, width: int = 640,
+              capacity: int = 2**20) -> dict:
+  from bench import scene  # pylint: disable=import-outside-toplevel
+  from jaxfusion import fusion  # pylint: disable=import-outside-toplevel
+  frames = scene.make_frames(num_frames, height=height, width=width, num_classes=13, seed=5)
+  rule = jf.rules.by_name("robust_dr")
+  camera = frames.camera
+  dev = [jax.device_put(frames.frame(t)) for t in range(num_frames)]
+
+  @functools.partial(jax.jit, donate_argnums=0)
+  def user_loop(state, frame_list):
+    for frame in frame_list:      # traced inline: the non-donating step, planned as one program
+      state = jf.fuse_frame(state, frame, camera, rule)
+    return state
+
+  fresh = lambda: jf.init_map(capacity=capacity, num_classes=13, rule=rule)
+  held = {"outer": fresh(), "steps": fresh()}
+  memory = user_loop.lower(held["outer"], dev).compile().memory_analysis()
+  print(f"outer jit: arguments {memory.argument_size_in_bytes / 2**20:.0f} MB, aliased "
+        f"{memory.alias_size_in_bytes / 2**20:.0f} MB, temp {memory.temp_size_in_bytes / 2**20:.0f}"
+        " MB")
+
+  def outer(_):
+    held["outer"] = user_loop(held["outer"], dev)
+    return held["outer"]
+
+  def steps(_):
+    state = held["steps"]
+    for frame in dev:
+      state = fusion.fuse_frame_donating(state, frame, camera, rule)
+    held["steps"] = state
+    return state
+
+  return _interleaved({f"loop of the donating step ({num_frames} frames)": steps,
+                       f"user loop under one outer jit ({num_frames} frames)": outer}, (None,),
+                      repeats)
+
+
 def main(argv=None) -> None:
   parser = argparse.ArgumentParser(prog="python -m bench.micro",
                                    description=__doc__.split("\n")[0])
   parser.add_argument("which", nargs="*", default=["terms", "moments"],
-                      choices=["terms", "moments"])
+                      choices=["terms", "moments", "outer-jit"])
   parser.add_argument("--repeats", type=int, default=None)
   args = parser.parse_args(argv)
   for name in args.which:
-    fn = {"terms": terms, "moments": moments}[name]
+    fn = {"terms": terms, "moments": moments, "outer-jit": outer_jit}[name]
     results = fn() if args.repeats is None else fn(repeats=args.repeats)
     print(f"\n{name} (load average {os.getloadavg()}):")
     base = next(iter(results.values()))[0]

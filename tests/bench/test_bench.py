@@ -68,6 +68,8 @@ def test_micro_benchmarks_run_on_tiny_sizes():
   from bench import micro  # pylint: disable=import-outside-toplevel
   terms = micro.terms(repeats=1, num_pixels=64, num_classes=3, blocks=2)
   moments = micro.moments(repeats=1, num_samples=2, height=3, width=4, num_classes=3)
+  outer = micro.outer_jit(repeats=1, num_frames=2, height=12, width=16, capacity=2**10)
+  assert len(outer) == 2 and all(lo > 0 for lo, _ in outer.values())
   assert len(terms) == 4 and len(moments) == 5
   assert all(0 < lo <= med for lo, med in list(terms.values()) + list(moments.values()))
 

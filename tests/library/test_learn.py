@@ -34,13 +34,13 @@ def test_constrain_round_trip_and_start_is_dr_like():
 def test_fit_lowers_the_loss_and_keeps_the_best_validation_point(batches):
   train, validation = batches
   seen = []
-  res = learn.fit(train, validation, steps=12, learning_rate=0.1, eval_every=3, patience=10,
+  res = learn.fit(train, validation, steps=8, learning_rate=0.1, eval_every=2, patience=10,
                   voxel_size=0.25,
                   progress=lambda step, loss, val: seen.append((step, loss, val)))
-  assert res.steps_run == 12 and not res.stopped_early and len(seen) == 12
+  assert res.steps_run == 8 and not res.stopped_early and len(seen) == 8
   assert res.train_losses[-1] < res.train_losses[0]
   steps, losses = zip(*res.validation)
-  assert steps == (0, 3, 6, 9, 12)
+  assert steps == (0, 2, 4, 6, 8)
   assert res.best_step == steps[int(np.argmin(losses))]
   assert res.rule.name == "learned" and np.asarray(res.params["beta"]).shape == (4,)
   assert 0.0 <= res.params["mix"] <= 1.0
