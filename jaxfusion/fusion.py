@@ -263,7 +263,7 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
 
 
 def _frame_of(x, index):
-  """Frame `index` of a `(T, n, K)` stack, or the `(n, K)` array itself (index None)."""
+  """Frame `index` of a stack with a leading T axis, or the frame's array itself (index None)."""
   return x if index is None else jax.lax.dynamic_index_in_dim(x, index, keepdims=False)
 
 
@@ -283,13 +283,12 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
   whose fields carry a leading T axis, read in place (`fuse_sequence_unchecked`)."""
   height, width, num_classes = frames.probs.shape[-3:]
   n = height * width
-  pick = lambda x: x if index is None else jax.lax.dynamic_index_in_dim(x, index, keepdims=False)
   stack = lambda x: jnp.asarray(x, jnp.float32).reshape(np.shape(x)[:-3] + (n, num_classes))
 
   # Geometry: every pixel → world point → voxel key, in one fused elementwise pass.
-  depth = jnp.asarray(pick(frames.depth), jnp.float32)
-  keys, in_range = camera_lib.depth_to_voxel_keys(depth, pick(frames.T_world_cam), camera,
-                                                  state.voxel_size)
+  depth = jnp.asarray(_frame_of(frames.depth, index), jnp.float32)
+  keys, in_range = camera_lib.depth_to_voxel_keys(depth, _frame_of(frames.T_world_cam, index),
+                                                  camera, state.voxel_size)
 
   # Valid pixels: positive finite depth, finite probabilities (and variances if given).
   probs = stack(frames.probs)

@@ -53,15 +53,10 @@ def constrain(params: dict) -> dict:
 
 
 def unconstrain(values: dict) -> dict:
-  """Inverse of `constrain` (δ and β clamped into [1e-4, 1 − 1e-4] first)."""
-  out = {}
-  for name, value in values.items():
-    value = jnp.asarray(value, jnp.float32)
-    if name in ("mix", "beta"):
-      value = jnp.clip(value, 1e-4, 1.0 - 1e-4)
-      value = jnp.log(value) - jnp.log1p(-value)
-    out[name] = value
-  return out
+  """Inverse of `constrain` (δ and β clamped into [1e-4, 1 − 1e-4] first, as `tune` clamps β)."""
+  logit = lambda v: tune.unconstrain({"beta": v})["beta"]
+  return {name: logit(value) if name in ("mix", "beta") else jnp.asarray(value, jnp.float32)
+          for name, value in values.items()}
 
 
 def start_params(num_classes: int, *, start: Optional[dict] = None,

@@ -19,6 +19,7 @@ import numpy as np
 
 from jaxfusion import learn
 from jaxfusion import rules as rules_lib
+from jaxfusion import tune
 from jaxfusion.lab import figures
 from jaxfusion.lab import reports
 from jaxfusion.lab import tuning
@@ -51,13 +52,11 @@ def merge_batches(batches: Sequence[dict]) -> dict:
   cat = lambda xs: None if xs[0] is None else np.concatenate(xs)
   merged = type(frames[0])(*(cat([getattr(f, name) for f in frames])
                              for name in frames[0]._fields))
-  width = max(b["coords"].shape[1] for b in batches)
-  pad = lambda x, fill: np.concatenate(
-      [x, np.full((x.shape[0], width - x.shape[1]) + x.shape[2:], fill, x.dtype)], axis=1)
+  coords, labels = tune.pad_ground_truth([{"coords": c, "labels": l} for b in batches
+                                          for c, l in zip(b["coords"], b["labels"])])
   return {"names": [n for b in batches for n in b["names"]], "frames": merged,
           "mask": np.concatenate([b["mask"] for b in batches]), "camera": batches[0]["camera"],
-          "coords": np.concatenate([pad(b["coords"], 0) for b in batches]),
-          "labels": np.concatenate([pad(b["labels"], -1) for b in batches]),
+          "coords": coords, "labels": labels,
           "capacity": max(b["capacity"] for b in batches),
           "num_classes": batches[0]["num_classes"], "source": batches[0]["source"]}
 

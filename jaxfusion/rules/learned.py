@@ -34,7 +34,7 @@ import numpy as np
 from jaxfusion import numerics
 from jaxfusion.rules import base
 from jaxfusion.rules import robust as robust_lib
-from jaxfusion.rules.baselines import log_init, log_posterior
+from jaxfusion.rules.baselines import log_posterior
 
 NUM_FEATURES = 6
 FEATURE_NAMES = ("max_prob", "margin", "entropy", "alpha_pred", "sqrt_sum_var", "rel_var_pred")
@@ -75,22 +75,25 @@ def pixel_weight(phi: jax.Array, hparams: dict) -> jax.Array:
   return jax.nn.sigmoid(jnp.sum(phi * hparams["theta"], axis=-1) + hparams["bias"])
 
 
-def _check_shapes(hparams, num_classes):
-  base.check_class_shapes(hparams, num_classes, ("beta",))
-  if jnp.shape(hparams["theta"]) != (NUM_FEATURES,):
-    raise ValueError(f"theta must have shape ({NUM_FEATURES},); got {jnp.shape(hparams['theta'])}")
-  if jnp.shape(hparams["gate"]) != (3,):
-    raise ValueError(f"gate must have shape (3,); got {jnp.shape(hparams['gate'])}")
+def _check_fixed_shapes(hparams):
+  """The shapes that do not depend on K: θ `(6,)`, γ `(3,)`, and b, δ, ε, α₀ scalars."""
+  theta, gate = jnp.shape(hparams["theta"]), jnp.shape(hparams["gate"])
+  if theta != (NUM_FEATURES,) or gate != (3,):
+    raise ValueError(f"theta must have shape ({NUM_FEATURES},) and gate (3,); got {theta} and "
+                     f"{gate}")
   for name in ("bias", "mix", "eps", "alpha0"):
     if jnp.shape(hparams[name]) != ():
       raise ValueError(f"{name} must be a scalar; got shape {jnp.shape(hparams[name])}")
 
 
+def _check_shapes(hparams, num_classes):
+  base.check_class_shapes(hparams, num_classes, ("beta",))
+  _check_fixed_shapes(hparams)
+
+
 def _init(num_classes, hparams):
   _check_shapes(hparams, num_classes)
-  row = log_init(num_classes, hparams)
-  row["alpha_bar"] = jnp.full(num_classes, hparams["alpha0"], jnp.float32)
-  return row
+  return robust_lib.dirichlet_row(num_classes, hparams)
 
 
 def _observe(probs, var, hparams):
@@ -107,11 +110,7 @@ def _observe(probs, var, hparams):
 def _update(row, obs, hparams):
   mix = hparams["mix"]
   alpha_prev = row["alpha_bar"]
-  least = -obs.maxes["neg_shifted_var"]
-  seen = jnp.isfinite(least) & (least > 0)
-  alpha_bar = jnp.maximum(alpha_prev, jnp.where(seen, -jnp.log(jnp.where(seen, least, 1.0)),
-                                                -jnp.inf))
-  safe = jnp.where(alpha_bar > 0, alpha_bar, 1.0)
+  alpha_bar, safe = robust_lib.running_concentration(alpha_prev, obs)
   keep = (1.0 - mix) + mix * (alpha_prev / safe)
   observation = (1.0 - mix) * obs.sums["wloglik"] + mix * (obs.sums["walpha_loglik"] / safe)
   prior = jax.nn.softmax(row["logp"])
@@ -167,12 +166,7 @@ def learned(params: dict = None, *, aggregate: str = "sum", **overrides) -> base
   values.update(given)
   hparams = {name: jnp.asarray(value, jnp.float32) for name, value in values.items()}
   hparams["beta"] = base.as_class_leaf(values["beta"], "beta")
-  if hparams["theta"].shape != (NUM_FEATURES,) or hparams["gate"].shape != (3,):
-    raise ValueError(f"theta must have shape ({NUM_FEATURES},) and gate (3,); got "
-                     f"{hparams['theta'].shape} and {hparams['gate'].shape}")
-  for name in ("bias", "mix", "eps", "alpha0"):
-    if hparams[name].ndim:
-      raise ValueError(f"{name} must be a scalar; got shape {hparams[name].shape}")
+  _check_fixed_shapes(hparams)
   _concrete_checks(hparams)
   return base.FusionRule(
       hparams=hparams, name="learned", init=_init, observe=_observe, update=_update,

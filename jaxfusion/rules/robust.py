@@ -97,24 +97,36 @@ def _dr_observe(probs, var, hparams):
   return _dirichlet_terms(regularize(probs, hparams["beta"]), var, hparams)
 
 
+def dirichlet_row(num_classes, hparams):
+  """An empty voxel of the Dirichlet rules: the uniform `logp` and `ᾱ_0 = α₀` (`()` or `(K,)`)."""
+  row = log_init(num_classes, hparams)
+  row["alpha_bar"] = jnp.full(num_classes, hparams["alpha0"], jnp.float32)
+  return row
+
+
+def running_concentration(alpha_prev, obs):
+  """`(ᾱ_t, safe ᾱ_t)` from `ᾱ_{t−1}` and a frame's reduced `max_j −(var_j + ε)`.
+
+  The frame's `max_j α_j = −log(min_j (var_j + ε))`; lanes without a pixel (max −inf) and
+  untouched lanes (1) get no new concentration, with a finite gradient. `ᾱ_t > 0` for any voxel
+  with a pixel; the safe copy (1 where it is not) only keeps untouched lanes finite.
+  """
+  least = -obs.maxes["neg_shifted_var"]
+  seen = jnp.isfinite(least) & (least > 0)
+  alpha_frame = jnp.where(seen, -jnp.log(jnp.where(seen, least, 1.0)), -jnp.inf)
+  alpha_bar = jnp.maximum(alpha_prev, alpha_frame)
+  return alpha_bar, jnp.where(alpha_bar > 0, alpha_bar, 1.0)
+
+
 def _dirichlet_init(num_classes, hparams):
   _check_shapes(hparams, num_classes)
-  row = log_init(num_classes, hparams)
-  row["alpha_bar"] = jnp.full(num_classes, hparams["alpha0"], jnp.float32)   # () or (K,)
-  return row
+  return dirichlet_row(num_classes, hparams)
 
 
 def _dirichlet_update(row, obs, hparams):
   del hparams
   alpha_prev = row["alpha_bar"]
-  # The frame's max_j α_j = −log(min_j (var_j + ε)); lanes without a pixel (max −inf) and
-  # untouched lanes (1) get no new concentration, with a finite gradient.
-  least = -obs.maxes["neg_shifted_var"]
-  seen = jnp.isfinite(least) & (least > 0)
-  alpha_frame = jnp.where(seen, -jnp.log(jnp.where(seen, least, 1.0)), -jnp.inf)
-  alpha_bar = jnp.maximum(alpha_prev, alpha_frame)
-  # ᾱ_t > 0 for any voxel with a pixel; the guard only keeps untouched lanes finite.
-  safe = jnp.where(alpha_bar > 0, alpha_bar, 1.0)
+  alpha_bar, safe = running_concentration(alpha_prev, obs)
   logp = (alpha_prev / safe) * row["logp"] + obs.sums["wloglik"] / safe
   return {"logp": numerics.normalize_log(logp), "alpha_bar": alpha_bar}
 
