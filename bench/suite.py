@@ -325,12 +325,13 @@ def aligned_row(config, height, width, k) -> dict:
                         repeats=config.repeats, voxel_size=config.voxel_size)
 
 
-def loop_rows(frames, config) -> dict:
+def loop_rows(frames, config, *, sequence_core_ms_per_frame: float) -> dict:
   """Per-frame cost of one sequence fused three ways, D+R, each into a map of its own that is
-  kept (donated) from call to call: a Python loop of the public `fuse_frame`, one public
-  `fuse_sequence` (a scan; it checks every value, `fuse_frame` a sample), and its jitted core
-  `fuse_sequence_donating` alone. `fuse_batch` (the scan under `vmap`, B = 1) returns new maps,
-  so it is timed from an empty map each call, beside the `init_map` it includes."""
+  kept (donated) from call to call: a Python loop of the public `fuse_frame` and one public
+  `fuse_sequence` (a scan; it checks every value, `fuse_frame` a sample), beside its jitted core
+  `fuse_sequence_donating` alone, timed on the same frames by `sequence_row` (passed in).
+  `fuse_batch` (the scan under `vmap`, B = 1) returns new maps, so it is timed from an empty map
+  each call, beside the `init_map` it includes."""
   rule = jf.rules.by_name(HEADLINE["rule"])
   k = frames.probs.shape[-1]
   length = frames.depth.shape[0]
@@ -352,19 +353,14 @@ def loop_rows(frames, config) -> dict:
     holder["sequence"] = jf.fuse_sequence(holder["sequence"], stacked, frames.camera, rule)
     return holder["sequence"]
 
-  def core():
-    holder["sequence_core"] = fusion.fuse_sequence_donating(holder["sequence_core"], stacked,
-                                                            frames.camera, rule)
-    return holder["sequence_core"]
-
   def batch():
     return jf.fuse_batch(batched, frames.camera, rule, capacity=config.capacity,
                          voxel_size=config.voxel_size)
 
   repeats = max(3, config.repeats // 3)
   rows = {"frames": length, "init_map_ms": 1e3 * median_time(fresh, repeats)}
-  for name, fn in (("loop", loop), ("sequence", sequence), ("sequence_core", core),
-                   ("batch", batch)):
+  rows["sequence_core_ms_per_frame"] = sequence_core_ms_per_frame
+  for name, fn in (("loop", loop), ("sequence", sequence), ("batch", batch)):
     holder[name] = fresh()
     rows[f"{name}_ms_per_frame"] = 1e3 * median_time(fn, repeats) / length
     holder.pop(name)
@@ -536,7 +532,8 @@ def run(config: Config, *, out_dir, log=print) -> dict:
                                  num_classes=headline_frames.probs.shape[-1], seed=5)
   results["sequence"] = sequence_row(seq_frames, config)
   log(f"fuse_sequence: {results['sequence']}")
-  results["loops"] = loop_rows(seq_frames, config)
+  results["loops"] = loop_rows(seq_frames, config, sequence_core_ms_per_frame=results[
+      "sequence"]["ms_per_frame"])
   log(f"loop / fuse_sequence / fuse_batch: {results['loops']}")
   h_w_k = (headline_frames.depth.shape[1], headline_frames.depth.shape[2],
            headline_frames.probs.shape[-1])
