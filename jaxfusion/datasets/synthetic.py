@@ -7,7 +7,17 @@ trained on different data) is replaced by procedural rooms rendered with a JAX r
 * `make_sequence(env, trajectory, ...)` — a rendered `RGBDSequence` with GT labels;
 * `sample_views(domain, n, ...)` — random labelled views of many random rooms, to train a
   segmentation net on the "train" domain and meet the "test" domain at mapping time;
-* `make_scene` / `render` — the scene and the single-frame renderer behind them.
+* `make_scene` / `render` — the scene and the single-frame renderer behind them;
+* `placement(env, seed)` — where a room sits in the world frame the sequences report.
+
+Rooms are modelled in their own frame, with walls, floor and much of the furniture on whole
+decimetres. A real room is not aligned with anyone's voxel grid, so `make_sequence` reports its
+poses in a world frame where the room sits at `placement(env, seed)`: turned by 5–15° about the
+vertical and tilted by 1–3° about each horizontal axis, and shifted by up to 0.1 m along each
+axis, all drawn from the layout seed. No surface then lies on a face of a 0.1 m (or any other)
+voxel grid. Rendering is unchanged (`render` takes the pose in the room's frame), and so are
+the images, depths and labels; the GT voxel labels come from depth and the reported poses, so
+they stay consistent.
 
 With `realism` (the default of the sequences and views), colour goes through the camera model
 of `camera_model.SensingConfig` — auto-exposure and white-balance drift, motion blur, defocus,
@@ -66,6 +76,35 @@ class SyntheticScene(NamedTuple):
 def list_sequences() -> list:
   """The paper's six sequences: `[(env, trajectory)]` for 2 environments × 3 trajectories."""
   return [(env, t) for env in ENVIRONMENTS for t in range(NUM_TRAJECTORIES)]
+
+
+def placement(env: str, seed: int = 0) -> np.ndarray:
+  """Where the room of `(env, seed)` sits in the world frame of its sequences.
+
+  A rigid transform drawn from the layout seed: a turn of 5–15° (either sign) about the
+  vertical, tilts of 1–3° (either sign) about the two horizontal axes and a shift uniform in
+  [0, 0.1) m along each axis, so that the room's surfaces lie on no voxel grid.
+
+  Args:
+    env: "office" or "house".
+    seed: layout seed.
+
+  Returns:
+    `(4, 4) float64` `T_world_room`.
+  """
+  if env not in ENVIRONMENTS:
+    raise ValueError(f"env must be one of {ENVIRONMENTS}; got {env!r}")
+  rng = np.random.default_rng([int(seed), ENVIRONMENTS.index(env), 6262])
+  signs = rng.choice([-1.0, 1.0], size=3)
+  yaw, pitch, roll = np.radians(signs * rng.uniform([5.0, 1.0, 1.0], [15.0, 3.0, 3.0]))
+  c, s = np.cos([yaw, pitch, roll]), np.sin([yaw, pitch, roll])
+  rz = np.array([[c[0], -s[0], 0.0], [s[0], c[0], 0.0], [0.0, 0.0, 1.0]])
+  ry = np.array([[c[1], 0.0, s[1]], [0.0, 1.0, 0.0], [-s[1], 0.0, c[1]]])
+  rx = np.array([[1.0, 0.0, 0.0], [0.0, c[2], -s[2]], [0.0, s[2], c[2]]])
+  T = np.eye(4)
+  T[:3, :3] = rz @ ry @ rx
+  T[:3, 3] = rng.uniform(0.0, 0.1, size=3)
+  return T
 
 
 def default_camera(height: int, width: int) -> Camera:
@@ -175,7 +214,8 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
 
   Args:
     synthetic_scene: output of `make_scene`.
-    T_world_cam: `(4, 4)` camera-to-world pose.
+    T_world_cam: `(4, 4)` camera-to-room pose, in the room's own frame (a sequence reports
+      `placement(env, seed) @ T_world_cam`).
     camera: intrinsics.
     height: image rows H.
     width: image columns W.
@@ -263,7 +303,8 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
     num_frames: T frames along the whole trajectory.
     height: image rows H.
     width: image columns W.
-    seed: layout seed; the furniture and the path depend on `(env, seed)` only.
+    seed: layout seed; the furniture, the path and the room's `placement` depend on
+      `(env, seed)` only.
     shift: strength of the "test" domain gap in [0, 1].
     realism: sensor noise on depth and the camera model on colour (GT labels are always exact).
     sensing: the camera model (default `SensingConfig()`; `SensingConfig.off()` for the plain
@@ -271,7 +312,8 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
 
   Returns:
     An `RGBDSequence` named `f"{env}_{trajectory}_{domain}"` with `CLASS_NAMES` labels and
-    instance ids.
+    instance ids. Its poses are in the world frame, where the room sits at
+    `placement(env, seed)` (also in `info["T_world_room"]`); `render` takes room-frame poses.
   """
   if trajectory not in range(NUM_TRAJECTORIES):
     raise ValueError(f"trajectory must be 0, 1 or 2; got {trajectory}")
@@ -287,6 +329,8 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
           "trajectory_name": trajectories.TRAJECTORY_NAMES[trajectory], "domain": domain,
           "seed": int(seed), "shift": float(shift), "realism": bool(realism),
           "room_size": [float(x) for x in world.layout.room]}
+  T_world_room = placement(env, seed)
+  info["T_world_room"] = T_world_room.tolist()
   if realism and config.enabled:
     # The camera's drift depends on the sequence, not on the domain: both see the same camera.
     rng = np.random.default_rng([seed, trajectory, ENVIRONMENTS.index(env), 5151])
@@ -299,7 +343,8 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
   return RGBDSequence(
       name=f"{env}_{trajectory}_{domain}", class_names=CLASS_NAMES, camera=camera,
       rgb=np.stack([f.rgb for f in frames]), depth=np.stack([f.depth for f in frames]),
-      T_world_cam=poses, labels=np.stack([f.labels for f in frames]),
+      T_world_cam=np.einsum("ij,tjk->tik", T_world_room, poses).astype(np.float32),
+      labels=np.stack([f.labels for f in frames]),
       instances=np.stack([f.instances for f in frames]), info=info)
 
 
