@@ -19,6 +19,7 @@ Shape legend: B sequences, T frames, K classes, N GT voxels.
 import dataclasses
 import functools
 import importlib
+import json
 import time
 from typing import Callable, Optional
 
@@ -214,3 +215,21 @@ def weight_grid(hparams: dict, alpha_pred: jax.Array, max_prob: jax.Array, *,
     var = jnp.zeros(num_classes).at[0].set(jnp.maximum(jnp.exp(-alpha) - hparams["eps"], 0.0))
     return learned_lib.pixel_weight(learned_lib.features(probs, var, hparams["eps"]), hparams)
   return jax.vmap(lambda a: jax.vmap(lambda p: one(a, p))(max_prob))(alpha_pred)
+
+
+def load_params(path: str) -> dict:
+  """The parameters in a `params.json` written by `jaxfusion learn-rule` (for `rules.learned`).
+
+  Raises:
+    ValueError: not such a file, or parameters `rules.learned` refuses (names, shapes, ranges).
+  """
+  try:
+    with open(path, encoding="utf-8") as f:
+      payload = json.load(f)
+  except json.JSONDecodeError as e:
+    raise ValueError(f"{path} is not a learned-rule parameter file (not JSON: {e})") from e
+  params = payload.get("params") if isinstance(payload, dict) else None
+  if not isinstance(params, dict):
+    raise ValueError(f"{path} is not a learned-rule parameter file (no 'params' object)")
+  rules_lib.learned(params)      # validates names, shapes and ranges
+  return params

@@ -7,6 +7,7 @@ engine never imports it.
     samples = jaxfusion_models.mc_samples(model.graphdef, model.params, key, rgb, num_samples=32)
     mean, var = jaxfusion.mc_moments(samples)           # (H, W, K) each
     source = jaxfusion_models.mc_dropout_source(model.graphdef, model.params, num_samples=32)
+    rule = jaxfusion_models.load_learned_rule()          # the learned fusion rule, fitted on it
 
 Commands: `python -m models.train`, `python -m models.evaluate`, `python -m models.figure`.
 """
@@ -17,6 +18,9 @@ from .checkpoint import PRETRAINED_PATH
 from .checkpoint import load
 from .checkpoint import load_pretrained
 from .checkpoint import save
+from .learned_rule import LEARNED_RULE_PATH
+from .learned_rule import LEARNED_RULE_RECORD
+from .learned_rule import load_learned_rule
 from .net import DEFAULT_CLASS_NAMES
 from .net import SegNet
 from .net import SegNetConfig
@@ -36,9 +40,11 @@ from .sampling import prepare_images
 from .sampling import stochastic_apply_fn
 
 __all__ = sorted([
-    "CheckpointError", "DEFAULT_CLASS_NAMES", "LoadedModel", "PRETRAINED_PATH", "SegNet",
+    "CheckpointError", "DEFAULT_CLASS_NAMES", "LEARNED_RULE_PATH", "LEARNED_RULE_RECORD",
+    "LoadedModel", "PRETRAINED_PATH", "SegNet",
     "SegNetConfig", "apply", "count_params", "deterministic_apply_fn", "deterministic_probs",
-    "deterministic_source", "ensemble_source", "init", "load", "load_pretrained",
+    "deterministic_source", "ensemble_source", "init", "load", "load_learned_rule",
+    "load_pretrained",
     "mc_dropout_source", "mc_samples", "mc_samples_batch", "prepare_images", "resnet18_config",
     "save",
     "stochastic_apply_fn", "tiny_config",

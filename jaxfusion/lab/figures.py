@@ -338,7 +338,7 @@ def _param_label(param: str) -> str:
 def simulation_heatmap(path: str, result: dict) -> None:
   """`jaxfusion simulate-sweep`'s 2×2 PNG: mIoU of Bayes and D+R, D+R − Bayes, oracle − Bayes (mean
   over draws, ± the standard deviation over draws in the difference panels when there are
-  several)."""
+  several); with a learned column, 2×3 with Learned − Bayes and Learned − D+R."""
   plt = _pyplot()
   rules = result["rules"]
   miou = 100.0 * np.asarray(result["miou"])           # (Y, X, D, R)
@@ -347,12 +347,16 @@ def simulation_heatmap(path: str, result: dict) -> None:
             ("D+R mIoU (%)", dr, "viridis", None),
             ("D+R − Bayesian (mIoU points)", dr - bayes, "RdBu", "diff"),
             ("Oracle − Bayesian: headroom (mIoU points)", oracle - bayes, "RdBu", "diff")]
+  if "Learned" in rules:                 # the learned rule's column: two more panels
+    learned = miou[..., rules.index("Learned")]
+    panels[2:2] = [("Learned − Bayesian (mIoU points)", learned - bayes, "RdBu", "diff")]
+    panels.append(("Learned − D+R (mIoU points)", learned - dr, "RdBu", "diff"))
   x, y = result["x"], result["y"]
-  fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+  cols = len(panels) // 2
+  fig, axes = plt.subplots(2, cols, figsize=(5 * cols, 8))
   vmin = min(np.nanmin(bayes.mean(-1)), np.nanmin(dr.mean(-1)))
   vmax = max(np.nanmax(bayes.mean(-1)), np.nanmax(dr.mean(-1)))
-  limit = max(np.nanmax(np.abs((dr - bayes).mean(-1))),
-              np.nanmax(np.abs((oracle - bayes).mean(-1))), 0.5)
+  limit = max(max(np.nanmax(np.abs(v.mean(-1))) for _, v, _, kind in panels if kind), 0.5)
   for ax, (title, values, cmap, kind) in zip(axes.flat, panels):
     mean = values.mean(-1)
     std = values.std(-1)

@@ -4,13 +4,12 @@ layouts, with early stopping on other layouts, and write its parameters and a re
 The training layouts and the validation layouts are disjoint from each other and from every
 layout the rules are judged on (the demo's seed 0, the study's 1–3, the tuning protocol's 1–3).
 Sequences at several domain shifts go into one training batch. Outputs under `--out`:
-`params.json` (what `rules.learned` takes; `load_params` reads it), `record.json` (data, settings,
+`params.json` (what `rules.learned` takes; `jaxfusion.learn.load_params` reads it), `record.json` (data, settings,
 steps, loss curves, time), `loss.png` and `weights.png` (the learned per-pixel weight over α and
 the max probability, beside D's α/ᾱ).
 """
 
 import argparse
-import json
 import os
 import time
 from typing import Sequence
@@ -18,7 +17,6 @@ from typing import Sequence
 import numpy as np
 
 from jaxfusion import learn
-from jaxfusion import rules as rules_lib
 from jaxfusion import tune
 from jaxfusion.lab import figures
 from jaxfusion.lab import reports
@@ -29,17 +27,6 @@ TRAIN_SEEDS = (11, 12)
 VALIDATION_SEEDS = (13,)
 # Layout seeds some command judges rules on: a learned rule must never see them.
 JUDGED_SEEDS = (0, 1, 2, 3)
-
-
-def load_params(path: str) -> dict:
-  """The parameters in a `params.json` written by `learn-rule` (a dict for `rules.learned`)."""
-  with open(path, encoding="utf-8") as f:
-    payload = json.load(f)
-  params = payload.get("params") if isinstance(payload, dict) else None
-  if not isinstance(params, dict):
-    raise ValueError(f"{path} is not a learned-rule parameter file (no 'params' object)")
-  rules_lib.learned(params)      # validates names, shapes and ranges
-  return params
 
 
 def merge_batches(batches: Sequence[dict]) -> dict:

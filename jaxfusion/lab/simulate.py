@@ -2,8 +2,9 @@
 
 The simulated front end itself (its generative model, `ErrorModel`, `simulate_sequence`) is the
 library's `jaxfusion.simulation`; this module sweeps two of its parameters over embedded
-sequences, fuses every cell with Bayes, R, D, D+R and an oracle, and writes the heatmap and the
-tables.
+sequences, fuses every cell with Bayes, R, D, D+R and an oracle (and, with `--learned`, the
+learned rule fitted for that cell's front end on calibration layouts), and writes the heatmap
+and the tables.
 
 Shape legend: T frames, H×W pixels, K classes, X×Y sweep cells, D draws, R rules.
 """
@@ -21,6 +22,7 @@ import numpy as np
 from jaxfusion import batch
 from jaxfusion import camera as camera_lib
 from jaxfusion import fusion
+from jaxfusion import learn
 from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
@@ -42,6 +44,8 @@ ORACLE_WEIGHT = 1e-5
 # The rules of a sweep by their display names (`rules.display_name`, the study's "Oracle"), in
 # the order of its outputs (Bayesian ≡ R with β = 0, D ≡ D+R with β = 0).
 SWEEP_RULES = ("Bayesian", "R", "D", "D+R", "Oracle")
+# The learned rule's column, after those, when the sweep is given learned rules.
+LEARNED = "Learned"
 
 
 # --- the sweep -----------------------------------------------------------------------------------
@@ -88,6 +92,137 @@ def _sweep_row(key, labels, instance_ids, depth, poses, camera, models, gt_coord
   return jax.lax.map(cell, models)
 
 
+def _views(key, labels, instance_ids, depth, poses, camera, model, *, num_classes, regions):
+  """The simulated front end's view of every frame of one sequence (`SimulatedView`, `(T, …)`)."""
+  frames_t = jnp.arange(labels.shape[0], dtype=jnp.int32)
+  one = functools.partial(simulate_frame, num_classes=num_classes, regions=regions)
+  return jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0, None, None))(
+      key, labels, instance_ids, frames_t, depth, poses, camera, model)
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "num_classes", "regions", "capacity", "voxel_size", "max_probes"))
+def _learned_row(key, labels, instance_ids, depth, poses, camera, models, gt_coords, gt_labels,
+                 learned_stack, *, num_classes, regions, capacity, voxel_size, max_probes):
+  """Confusions `(X, K, K)` of each cell's learned rule on the views `_sweep_row` fuses (the same
+  key, so the same draws)."""
+  mask = jnp.ones(labels.shape[:1], bool)
+
+  def cell(model_and_rule):
+    model, rule = model_and_rule
+    view = _views(key, labels, instance_ids, depth, poses, camera, model,
+                  num_classes=num_classes, regions=regions)
+    state = batch.fuse_masked(fusion.Frame(depth, poses, view.probs, view.var), mask, camera,
+                              rule, capacity=capacity, num_classes=num_classes,
+                              voxel_size=voxel_size, max_probes=max_probes)
+    return tune.confusion(state, gt_coords, gt_labels)
+
+  return jax.lax.map(cell, (models, learned_stack))
+
+
+@functools.partial(jax.jit, static_argnames=("num_classes", "regions"))
+def _simulated_moments(key, labels, instance_ids, depth, poses, camera, model, *, num_classes,
+                       regions):
+  view = _views(key, labels, instance_ids, depth, poses, camera, model, num_classes=num_classes,
+                regions=regions)
+  return view.probs, view.var
+
+
+def simulated_batch(sequences: Sequence[dict], model: ErrorModel, *, seed: int = 0,
+                    regions: str = "both") -> dict:
+  """Sequences seen through the simulated front end `model`, as one batch for `learn.fit`.
+
+  Args:
+    sequences: dicts as `sweep_grid` reads them (`load_sequence`).
+    model: the front end's `ErrorModel` (one cell of a sweep).
+    seed: seed of the draw; sequence i uses key `fold_in(key(seed), i)`.
+    regions: "objects", "patches" or "both".
+
+  Returns:
+    dict with `names`, `frames` `(B, T, …)`, `mask`, `camera`, `coords`, `labels`, `capacity`,
+    `num_classes` (the layout of `lab.tuning.load_sequence_batch`).
+  """
+  frames, gts = [], []
+  for i, seq in enumerate(sequences):
+    camera = camera_lib.Camera(*(jnp.float32(v) for v in seq["camera"]))
+    probs, var = _simulated_moments(
+        jax.random.fold_in(jax.random.PRNGKey(seed), i), jnp.asarray(seq["labels"], jnp.int32),
+        jnp.asarray(seq["instances"], jnp.int32), jnp.asarray(seq["depth"], jnp.float32),
+        jnp.asarray(seq["T_world_cam"], jnp.float32), camera, model,
+        num_classes=int(seq["num_classes"]), regions=regions)
+    frames.append(fusion.Frame(np.asarray(seq["depth"], np.float32),
+                               np.asarray(seq["T_world_cam"], np.float32), np.asarray(probs),
+                               np.asarray(var)))
+    gts.append(seq["gt"])
+  stacked, mask = batch.stack_sequences(frames)
+  coords, labels = tune.pad_ground_truth(gts)
+  return {"names": [s["name"] for s in sequences], "frames": stacked, "mask": mask,
+          "camera": sequences[0]["camera"], "coords": coords, "labels": labels,
+          "capacity": max(state_lib.capacity_for(len(g["labels"])) for g in gts),
+          "num_classes": int(sequences[0]["num_classes"])}
+
+
+def fit_learned_rules(calibration: Sequence[dict], validation: Sequence[dict], *, x_param: str,
+                      x_values, y_param: str, y_values, base: Optional[dict] = None,
+                      regions: str = "both", seed: int = 0, progress: bool = True,
+                      **fit_kwargs) -> list:
+  """The learned rule fitted for each cell's front end: `(Y, X)` nested lists of `FitResult`.
+
+  Each cell's simulated front end sees the calibration and validation sequences (other layouts
+  than those the sweep judges on) and `learn.fit` fits `rules.learned` on the first, stopping
+  early on the second, as `jaxfusion learn-rule` does for the network.
+
+  Args:
+    calibration: training sequences (`load_sequence` dicts).
+    validation: early-stopping sequences.
+    x_param, x_values, y_param, y_values, base, regions: the sweep's grid (see `sweep_grid`).
+    seed: seed of the calibration draws (validation uses `seed + 1`).
+    progress: show a tqdm bar over cells.
+    **fit_kwargs: passed to `learn.fit` (steps, learning_rate, eval_every, patience, ...).
+  """
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  rows = _grid_models(calibration, x_param=x_param, x_values=x_values, y_param=y_param,
+                      y_values=y_values, base=base)
+  bar = tqdm(total=sum(len(r) for r in rows), desc="fit learned rules", disable=not progress)
+  fits = []
+  for row in rows:
+    fits.append([])
+    for model in row:
+      train = simulated_batch(calibration, model, seed=seed, regions=regions)
+      val = simulated_batch(validation, model, seed=seed + 1, regions=regions)
+      fits[-1].append(learn.fit(train, val, **fit_kwargs))
+      bar.update(1)
+  bar.close()
+  return fits
+
+
+def _grid_models(sequences, *, x_param, x_values, y_param, y_values, base) -> list:
+  """`(Y, X)` nested lists of the cells' `ErrorModel`s (the axes and base checked)."""
+  for name in (x_param, y_param):
+    if name not in SWEEP_PARAMS:
+      raise ValueError(f"a sweep axis must be one of {SWEEP_PARAMS}; got {name!r}")
+  if x_param == y_param:
+    raise ValueError(f"the two axes must differ; got {x_param!r} twice")
+  x_values = [float(v) for v in x_values]
+  y_values = [float(v) for v in y_values]
+  if not x_values or not y_values:
+    raise ValueError("each axis needs at least one value")
+  if not sequences:
+    raise ValueError("a sweep needs at least one sequence")
+  base = dict(base or {})
+  unknown = sorted(set(base) - set(SWEEP_PARAMS))
+  if unknown:
+    raise ValueError(f"unknown base parameters {unknown}; known: {list(SWEEP_PARAMS)}")
+  for name in (x_param, y_param):
+    base.pop(name, None)
+  num_classes = {int(s["num_classes"]) for s in sequences}
+  if len(num_classes) != 1:
+    raise ValueError(f"all sequences must have the same K; got {sorted(num_classes)}")
+  (num_classes,) = num_classes
+  return [[error_model(num_classes=num_classes, **base, **{x_param: xv, y_param: yv})
+           for xv in x_values] for yv in y_values]
+
+
 def _stack_models(models: Sequence[ErrorModel]) -> ErrorModel:
   return jax.tree.map(lambda *xs: jnp.stack(xs), *models)
 
@@ -95,7 +230,8 @@ def _stack_models(models: Sequence[ErrorModel]) -> ErrorModel:
 def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: str, y_values,
                base: Optional[dict] = None, regions: str = "both", beta: float = 0.3,
                num_draws: int = 1, seed: int = 0, voxel_size: float = 0.1,
-               max_probes: int = state_lib.DEFAULT_MAX_PROBES, progress: bool = True) -> dict:
+               max_probes: int = state_lib.DEFAULT_MAX_PROBES, progress: bool = True,
+               learned: Optional[Sequence[Sequence[rules_lib.FusionRule]]] = None) -> dict:
   """Fuses sequences seen through the simulated front end on a grid of two of its parameters.
 
   Every cell of the X×Y grid is fused with Bayes, R, D, D+R (two vmapped stacks: Bayes is R
@@ -121,41 +257,33 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
     voxel_size: voxel edge in metres (the GT's).
     max_probes: hash probe bound.
     progress: show a tqdm bar.
+    learned: `(Y, X)` nested lists of learned rules (`rules.learned`, e.g. each cell's
+      `fit_learned_rules` result), fused on the same views as a sixth column `LEARNED`.
 
   Returns:
-    dict with `rules` (`SWEEP_RULES`), `x`/`y` (values), `miou`/`accuracy` `(Y, X, D, 5)`,
+    dict with `rules` (`SWEEP_RULES`, then `LEARNED` when given), `x`/`y` (values),
+    `miou`/`accuracy` `(Y, X, D, R)`,
     `confusion (Y, X, D, 5, K, K)`, realised `error_rate`, `alpha_separation`, `auroc`
     `(Y, X)` (over all sequences and draws), and `seconds`.
   """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
-  for name in (x_param, y_param):
-    if name not in SWEEP_PARAMS:
-      raise ValueError(f"a sweep axis must be one of {SWEEP_PARAMS}; got {name!r}")
-  if x_param == y_param:
-    raise ValueError(f"the two axes must differ; got {x_param!r} twice")
-  x_values = [float(v) for v in x_values]
-  y_values = [float(v) for v in y_values]
-  if not x_values or not y_values:
-    raise ValueError("each axis needs at least one value")
-  if not sequences:
-    raise ValueError("sweep_grid needs at least one sequence")
   if int(num_draws) < 1:
     raise ValueError(f"num_draws must be ≥ 1; got {num_draws}")
   check_regions(regions)
-  base = dict(base or {})
-  unknown = sorted(set(base) - set(SWEEP_PARAMS))
-  if unknown:
-    raise ValueError(f"unknown base parameters {unknown}; known: {list(SWEEP_PARAMS)}")
-  for name in (x_param, y_param):
-    base.pop(name, None)
-  num_classes = {int(s["num_classes"]) for s in sequences}
-  if len(num_classes) != 1:
-    raise ValueError(f"all sequences must have the same K; got {sorted(num_classes)}")
-  (num_classes,) = num_classes
-  rows = [[error_model(num_classes=num_classes, **base, **{x_param: xv, y_param: yv})
-           for xv in x_values] for yv in y_values]
+  rows = _grid_models(sequences, x_param=x_param, x_values=x_values, y_param=y_param,
+                      y_values=y_values, base=base)
+  x_values = [float(v) for v in x_values]
+  y_values = [float(v) for v in y_values]
+  base = {k: v for k, v in (base or {}).items() if k not in (x_param, y_param)}
+  num_classes = int(sequences[0]["num_classes"])
+  learned_rows = None
+  if learned is not None:
+    if len(learned) != len(y_values) or any(len(r) != len(x_values) for r in learned):
+      raise ValueError(f"learned must hold {len(y_values)}×{len(x_values)} rules, one per cell")
+    learned_rows = [rules_lib.stack(list(r)) for r in learned]
   r_stack, dr_stack = _sweep_rules(beta)
-  num_rules = len(SWEEP_RULES)
+  names = list(SWEEP_RULES) + ([LEARNED] if learned is not None else [])
+  num_rules = len(names)
   shape = (len(y_values), len(x_values), int(num_draws))
   cms = np.zeros(shape + (num_rules, num_classes, num_classes), np.int64)
   tallies = {}      # per cell: lists of α for right / wrong pixels, counts
@@ -178,11 +306,16 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
     for d in range(int(num_draws)):
       key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), i), d)
       for yi, row in enumerate(rows):
+        sizes = dict(num_classes=num_classes, regions=regions, capacity=capacity,
+                     voxel_size=float(voxel_size), max_probes=max_probes)
         out_cms, wrong, alpha = _sweep_row(
             key, labels, instances, depth, poses, camera, _stack_models(row), gt_coords,
-            gt_labels, r_stack, dr_stack, num_classes=num_classes, regions=regions,
-            capacity=capacity, voxel_size=float(voxel_size), max_probes=max_probes)
-        cms[yi, :, d] += np.asarray(out_cms)
+            gt_labels, r_stack, dr_stack, **sizes)
+        cms[yi, :, d, :len(SWEEP_RULES)] += np.asarray(out_cms)
+        if learned_rows is not None:
+          cms[yi, :, d, len(SWEEP_RULES)] += np.asarray(_learned_row(
+              key, labels, instances, depth, poses, camera, _stack_models(row), gt_coords,
+              gt_labels, learned_rows[yi], **sizes))
         wrong, alpha = np.asarray(wrong), np.asarray(alpha)
         for xi in range(len(x_values)):
           w, a = wrong[xi][valid], alpha[xi][valid]
@@ -206,7 +339,7 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
     if len(right) and len(wrong):
       realised["alpha_separation"][yi, xi] = np.median(right) - np.median(wrong)
       realised["auroc"][yi, xi] = metrics.auroc_of_samples(right, wrong)
-  return {"rules": list(SWEEP_RULES), "x_param": x_param, "y_param": y_param,
+  return {"rules": names, "x_param": x_param, "y_param": y_param,
           "x": x_values, "y": y_values, "base": {k: float(v) for k, v in base.items()},
           "regions": regions, "beta": float(beta), "num_draws": int(num_draws),
           "sequences": [s["name"] for s in sequences], "miou": miou, "accuracy": acc,
@@ -226,12 +359,26 @@ def _rows(result: dict) -> list:
       diff = miou[yi, xi, :, result["rules"].index("D+R")] - miou[yi, xi, :, 0]
       row["miou_DR_minus_Bayes"] = float(np.mean(diff))
       row["miou_DR_minus_Bayes_std"] = float(np.std(diff))
-      row["miou_oracle_minus_Bayes"] = float(np.mean(
-          miou[yi, xi, :, result["rules"].index("Oracle")] - miou[yi, xi, :, 0]))
+      head = miou[yi, xi, :, result["rules"].index("Oracle")] - miou[yi, xi, :, 0]
+      row["miou_oracle_minus_Bayes"] = float(np.mean(head))
+      row["oracle_share_DR"] = _share(np.mean(diff), np.mean(head))
+      if LEARNED in result["rules"]:
+        learned = miou[yi, xi, :, result["rules"].index(LEARNED)]
+        row["miou_Learned_minus_Bayes"] = float(np.mean(learned - miou[yi, xi, :, 0]))
+        row["miou_Learned_minus_DR"] = float(np.mean(
+            learned - miou[yi, xi, :, result["rules"].index("D+R")]))
+        row["miou_Learned_minus_DR_std"] = float(np.std(
+            learned - miou[yi, xi, :, result["rules"].index("D+R")]))
+        row["oracle_share_Learned"] = _share(row["miou_Learned_minus_Bayes"], np.mean(head))
       for k in ("error_rate", "alpha_separation", "auroc"):
         row[f"realised_{k}"] = float(result[k][yi, xi])
       rows.append(row)
   return rows
+
+
+def _share(gain: float, headroom: float) -> float:
+  """A rule's mIoU gain over Bayes as a share of the oracle's (NaN without headroom)."""
+  return float(gain / headroom) if headroom > 0 else float("nan")
 
 
 def write_results(out_dir: str, result: dict) -> list:
@@ -247,6 +394,8 @@ def write_results(out_dir: str, result: dict) -> list:
   payload["settings"] = result.get("settings", {})
   payload["cells"] = rows
   payload["miou"] = np.asarray(result["miou"]).tolist()
+  if "learned" in result:
+    payload["learned"] = result["learned"]
   reports.write_json(paths[2], payload)
   return paths
 
@@ -312,6 +461,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--regions", choices=REGIONS, default="both")
   parser.add_argument("--beta", type=float, default=0.3, help="β of R and D+R")
   parser.add_argument("--voxel-size", type=float, default=0.1)
+  parser.add_argument("--learned", action="store_true",
+                      help="also fit the learned rule (rules.learned) for each cell's front end "
+                           "on calibration layouts (--learned-seeds) and fuse it as a sixth "
+                           "column")
+  parser.add_argument("--learned-seeds", nargs=2, type=int, default=[11, 12],
+                      metavar=("TRAIN", "VALIDATION"),
+                      help="layout seeds of the learned rule's training and early-stopping "
+                           "sequences (the same ENV:TRAJECTORY list; default 11 12)")
+  parser.add_argument("--learned-steps", type=int, default=40, help="at most this many steps")
+  parser.add_argument("--learned-eval-every", type=int, default=5)
+  parser.add_argument("--learned-patience", type=int, default=3)
   defaults = error_model()._asdict()
   defaults["error_rate"] = 0.3
   for name in SWEEP_PARAMS:
@@ -336,10 +496,30 @@ def main(args: argparse.Namespace) -> int:
                              voxel_size=args.voxel_size) for s in specs]
   render_seconds = time.perf_counter() - start
   base = {name: getattr(args, name) for name in SWEEP_PARAMS}
-  result = sweep_grid(sequences, x_param=args.x, x_values=_floats(pick("x_values")),
-                      y_param=args.y, y_values=_floats(pick("y_values")), base=base,
-                      regions=args.regions, beta=args.beta, num_draws=pick("draws"),
-                      seed=args.mc_seed, voxel_size=args.voxel_size)
+  grid = dict(x_param=args.x, x_values=_floats(pick("x_values")), y_param=args.y,
+              y_values=_floats(pick("y_values")), base=base, regions=args.regions)
+  learned, record = None, None
+  if args.learned:
+    judged = flags.one_layout_seed(args)
+    seeds = [int(v) for v in args.learned_seeds]
+    if len(set(seeds + [judged])) < 3:
+      raise ValueError(f"--learned-seeds {seeds} must differ from each other and from the "
+                       f"layout seed the sweep judges on ({judged})")
+    calibration = [[load_sequence(s, num_frames=pick("frames"), height=pick("height"),
+                                  width=pick("width"), seed=seed, voxel_size=args.voxel_size)
+                    for s in specs] for seed in seeds]
+    fits = fit_learned_rules(*calibration, **grid, seed=args.mc_seed + 1,
+                             steps=args.learned_steps, eval_every=args.learned_eval_every,
+                             patience=args.learned_patience, voxel_size=args.voxel_size)
+    learned = [[f.rule for f in row] for row in fits]
+    record = {"train_seed": seeds[0], "validation_seed": seeds[1],
+              "cells": [[{"params": f.params, "best_step": f.best_step,
+                          "steps_run": f.steps_run, "validation": f.validation,
+                          "seconds": f.seconds} for f in row] for row in fits]}
+  result = sweep_grid(sequences, **grid, beta=args.beta, num_draws=pick("draws"),
+                      seed=args.mc_seed, voxel_size=args.voxel_size, learned=learned)
+  if record is not None:
+    result["learned"] = record
   result["settings"] = {"frames": pick("frames"), "height": pick("height"),
                         "width": pick("width"), "scene_seed": flags.one_layout_seed(args),
                         "seed": args.mc_seed, "voxel_size": args.voxel_size,
@@ -357,5 +537,15 @@ def main(args: argparse.Namespace) -> int:
     cells = "  ".join(f"{100 * bayes[yi, xi]:5.1f} {100 * gain[yi, xi]:+5.1f} "
                       f"{100 * head[yi, xi]:+5.1f}" for xi in range(len(result["x"])))
     print(f"  {yv:>6g} | {cells}")
+  if learned is not None:
+    lgain = (result["miou"][..., result["rules"].index(LEARNED)] - result["miou"][..., 0]).mean(-1)
+    print("  Learned − Bayesian / Learned − D+R (mIoU points) / share of the oracle's headroom "
+          "(Learned, D+R):")
+    for yi, yv in enumerate(result["y"]):
+      cells = "  ".join(
+          f"{100 * lgain[yi, xi]:+5.1f} {100 * (lgain - gain)[yi, xi]:+5.1f} "
+          f"{_share(lgain[yi, xi], head[yi, xi]):4.0%} {_share(gain[yi, xi], head[yi, xi]):4.0%}"
+          for xi in range(len(result["x"])))
+      print(f"  {yv:>6g} | {cells}")
   print(f"wrote {', '.join(paths)}")
   return 0

@@ -59,6 +59,7 @@ from tqdm.auto import tqdm
 
 import jaxfusion as jf
 from jaxfusion import camera as camera_lib
+from jaxfusion import learn
 from jaxfusion.lab import config as config_lib
 from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
@@ -71,9 +72,12 @@ from jaxfusion.rules.robust import DEFAULT_EPS
 
 HEADROOM = ("mostly right", "outvoted right", "never right")
 ORACLE = "oracle"
+# The learned rule (`rules.learned` with `StudyConfig.learned` parameters), a seventh row.
+LEARNED = "learned"
 # Paired comparisons (A, B) reported as A − B, in this order (those whose rules are run).
 COMPARISONS = (("robust_dr", "bayes"), ("robust_dr", "sum_probs"), ("robust_r", "bayes"),
-               ("robust_d", "bayes"), (ORACLE, "bayes"))
+               ("robust_d", "bayes"), (LEARNED, "bayes"), (LEARNED, "robust_dr"),
+               (ORACLE, "bayes"))
 # α bins: 0.1 nat from 0 to 28 (α ≤ −log 1e-12 ≈ 27.6).
 ALPHA_EDGES = np.linspace(0.0, 28.0, 281)
 # The demo's layout seed; the study's default seeds avoid it.
@@ -101,11 +105,22 @@ class StudyConfig:
     num_resamples: bootstrap resamples B.
     confidence: interval coverage.
     bootstrap_seed: seed of the bootstrap resamples.
+    learned: parameters of `rules.learned` (a dict, e.g. `learn.load_params` of a `learn-rule`
+      output): the learned rule is fused on the MC mean and variance as a seventh row; None:
+      the six paper rules only.
+    learned_source: where `learned` came from (a path), for the report.
   """
   run: config_lib.RunConfig = dataclasses.field(default_factory=_study_run)
   num_resamples: int = stats.DEFAULT_RESAMPLES
   confidence: float = stats.DEFAULT_CONFIDENCE
   bootstrap_seed: int = 0
+  learned: Optional[dict] = None
+  learned_source: Optional[str] = None
+
+  @property
+  def methods(self) -> list:
+    """The rules' names in table order, then `LEARNED` (when given) and `ORACLE`."""
+    return list(self.run.rules) + ([LEARNED] if self.learned is not None else []) + [ORACLE]
 
   @classmethod
   def quick(cls, **overrides) -> "StudyConfig":
@@ -116,11 +131,13 @@ class StudyConfig:
     return cls(run=_study_run(**run), **overrides)
 
   @classmethod
-  def of(cls, quick: bool = False, *, num_resamples=None, confidence=None, **run) -> "StudyConfig":
+  def of(cls, quick: bool = False, *, num_resamples=None, confidence=None, learned=None,
+         learned_source=None, **run) -> "StudyConfig":
     """The full (or quick) study with some run fields and statistics replaced (None: keep)."""
     run = {k: v for k, v in run.items() if v is not None}
     stats_overrides = {k: v for k, v in (("num_resamples", num_resamples),
-                                         ("confidence", confidence)) if v is not None}
+                                         ("confidence", confidence), ("learned", learned),
+                                         ("learned_source", learned_source)) if v is not None}
     if quick:
       return cls.quick(run=run, **stats_overrides)
     return cls(run=_study_run(**run), **stats_overrides)
@@ -305,6 +322,12 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     labels_at[name] = _labels_at(voxels, gt_coords)
     if name == "bayes":
       result_bayes = ev
+  if config.learned is not None:
+    rule = jf.rules.learned(config.learned, aggregate=config.run.aggregate)
+    voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera, predictions["mean"],
+                   predictions["var"], rule, config)
+    confusion[LEARNED] = metrics.evaluate_map(voxels, gt, num_classes)["confusion"]
+    labels_at[LEARNED] = _labels_at(voxels, gt_coords)
   # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
   bayes = config.run.make_rule("bayes")
   masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0).astype(np.float32)
@@ -355,13 +378,14 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     dict shift (str) → `methods` (method → `miou`, `accuracy` intervals), `differences`
     ("A − B" → `miou`, `accuracy` intervals), `headroom` (category → share interval),
     `recovered` (method → interval of the share of outvoted-right voxels labelled right, and
-    `accuracy_by_category`), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
+    `accuracy_by_category`), `oracle_share` (rule → interval of its mIoU gain over Bayes as a
+    share of the oracle's, `stats.headroom_share`), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
     `right_share` interval of right pixel observations), `num_sequences`.
   """
   units = config.run.units
   counts = stats.resample_counts(len(units), config.num_resamples, seed=config.bootstrap_seed)
   kw = dict(counts=counts, confidence=config.confidence)
-  methods = list(config.run.rules) + [ORACLE]
+  methods = config.methods
   out = {}
   for shift in config.run.shifts:
     rows = {r["unit"]: r for r in per_sequence if r["shift"] == float(shift)}
@@ -371,7 +395,7 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     seq = [rows[tuple(u)] for u in units]
     cms = {m: np.stack([r["confusion"][m] for r in seq]) for m in methods}
     res = {"num_sequences": len(seq), "methods": {}, "differences": {}, "headroom": {},
-           "recovered": {}}
+           "recovered": {}, "oracle_share": {}}
     for m in methods:
       res["methods"][display(m)] = {"miou": _iv(stats.bootstrap(cms[m], stats.miou, **kw)),
                                     "accuracy": _iv(stats.bootstrap(cms[m], stats.accuracy,
@@ -381,6 +405,10 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
         res["differences"][f"{display(a)} − {display(b)}"] = {
             "miou": _iv(stats.paired_difference(cms[a], cms[b], stats.miou, **kw)),
             "accuracy": _iv(stats.paired_difference(cms[a], cms[b], stats.accuracy, **kw))}
+    for m in methods:
+      if m not in ("bayes", ORACLE):
+        res["oracle_share"][display(m)] = _iv(stats.headroom_share(
+            cms[m], cms["bayes"], cms[ORACLE], stats.miou, **kw))
     head = np.stack([r["headroom"] for r in seq])                       # (S, 3)
     total = head.sum(1)
     for c, cname in enumerate(HEADROOM):
@@ -406,8 +434,8 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
 
 
 def display(method: str) -> str:
-  """Table name of a rule name or `ORACLE`."""
-  return "Oracle" if method == ORACLE else jf.rules.PAPER_RULES[method][0]
+  """Table name of a rule name, `LEARNED` or `ORACLE`."""
+  return {ORACLE: "Oracle", LEARNED: "Learned"}.get(method) or jf.rules.PAPER_RULES[method][0]
 
 
 # --- tables and figures ------------------------------------------------------------------------
@@ -461,6 +489,13 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
     lines.append(f"| {s} | " + " | ".join(_cell(r["headroom"][c]) for c in HEADROOM) + " | " +
                  " | ".join(_cell(r["recovered"][m]["share"]) for m in methods) + " |")
   parts.append("\n".join(lines))
+  lines = [f"## Share of the oracle's mIoU headroom recovered (%, {conf} paired-bootstrap "
+           "intervals): (mIoU − Bayes) / (oracle − Bayes)", "",
+           head.replace("Method", "Rule"), rule]
+  for m in first["oracle_share"]:
+    lines.append(f"| {m} | " + " | ".join(_cell(summary[s]["oracle_share"][m], signed=True)
+                                          for s in shifts) + " |")
+  parts.append("\n".join(lines))
   lines = ["## Front end: right pixel observations and α = −log var of the predicted class", "",
            "| Shift | right pixels (%) | median α right | median α wrong | AUROC(α: right vs "
            "wrong) |", "|---|---|---|---|---|"]
@@ -495,6 +530,8 @@ def _csv(summary: dict) -> str:
       row(s, "headroom", c, "share", v)
     for m, v in r["recovered"].items():
       row(s, "recovered", m, "share_of_outvoted_right", v["share"])
+    for m, v in r.get("oracle_share", {}).items():
+      row(s, "oracle_share", m, "miou_gain_share", v)
     row(s, "front_end", "alpha", "auroc", r["alpha"]["auroc"])
     row(s, "front_end", "pixels", "right_share", r["alpha"]["right_share"])
   return buf.getvalue()
@@ -512,6 +549,8 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
           f"β = {run.beta}, {run.voxel_size} m voxels, pixel aggregation: {run.aggregate}; "
           f"layout seeds {list(run.layout_seeds)}; "
           f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
+          + (f"learned rule `{config.learned_source or 'given parameters'}`; "
+             if config.learned is not None else "") +
           f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
   table = format_tables(summary, config, note)
   paths = {n: os.path.join(out_dir, n) for n in (
@@ -630,18 +669,33 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   flags.add_fusion(p, beta=None, aggregate=None, voxels=False)
   flags.add_mc_seed(p)
   p.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
+  learned = p.add_mutually_exclusive_group()
+  learned.add_argument("--learned-rule", default=None, metavar="PARAMS_JSON",
+                       help="params.json of `jaxfusion learn-rule`, fused as a seventh row "
+                            "(default: the shipped parameters, jaxfusion_models."
+                            "LEARNED_RULE_PATH)")
+  learned.add_argument("--no-learned-rule", action="store_true",
+                       help="the six paper rules only")
   p.set_defaults(func=main)
   return p
 
 
 def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion study` from parsed arguments and prints the tables."""
+  learned = source = None
+  if not args.no_learned_rule:
+    if args.learned_rule is None:
+      import jaxfusion_models  # pylint: disable=import-outside-toplevel
+      source = str(jaxfusion_models.LEARNED_RULE_PATH)
+    else:
+      source = args.learned_rule
+    learned = learn.load_params(source)
   config = StudyConfig.of(
       args.quick, num_resamples=args.resamples, layout_seeds=flags.as_tuple(args.layout_seeds),
       shifts=flags.as_tuple(args.shifts), envs=flags.as_tuple(args.envs),
       trajectories=flags.as_tuple(args.trajectories), num_frames=args.frames,
       height=args.height, width=args.width, num_samples=args.num_samples, beta=args.beta,
-      aggregate=args.aggregate, mc_seed=args.mc_seed)
+      aggregate=args.aggregate, mc_seed=args.mc_seed, learned=learned, learned_source=source)
   out = run_study(config.validate(), args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
   print(out["table"])
   t = out["timing"]

@@ -1,5 +1,5 @@
 """`jaxfusion learn-rule` end to end on small stand-in batches: the seeds it refuses, the files it
-writes, and that `load_params` gives back the rule it fitted."""
+writes, and that `learn.load_params` gives back the rule it fitted."""
 
 import argparse
 import json
@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import jaxfusion as jf
+from jaxfusion import learn
 from jaxfusion.lab import cli
 from jaxfusion.lab import learning
 from jaxfusion.lab import tuning
@@ -46,7 +47,7 @@ def test_learn_rule_command_writes_params_record_and_figures(batches, tmp_path, 
   # The stand-in loader gives one sequence a call: one per shift in each split.
   assert len(record["data"]["train"]) == 2 and len(record["data"]["validation"]) == 2
   assert record["seconds"]["fit"] > 0
-  params = learning.load_params(str(out / "params.json"))
+  params = learn.load_params(str(out / "params.json"))
   assert params == record["params"]
   rule = jf.rules.learned(params)
   assert rule.name == "learned" and np.shape(params["beta"]) == (4,)
@@ -65,7 +66,7 @@ def test_load_params_rejects_other_files(tmp_path):
   path = tmp_path / "p.json"
   path.write_text(json.dumps({"beta": 0.3}))
   with pytest.raises(ValueError, match="not a learned-rule parameter file"):
-    learning.load_params(str(path))
+    learn.load_params(str(path))
   path.write_text(json.dumps({"params": {"mix": 3.0}}))
   with pytest.raises(ValueError, match="mix must lie"):
-    learning.load_params(str(path))
+    learn.load_params(str(path))

@@ -97,3 +97,31 @@ def test_ratio_and_bad_input():
     stats.bootstrap(np.ones(3), lambda s: s, counts=np.ones((5, 4), int))
   with pytest.raises(ValueError, match="num_units"):
     stats.resample_counts(0)
+
+
+def test_headroom_share_by_hand_and_against_a_loop():
+  # Three units of (correct, total) sums under `ratio`: base 50 %, bound 90 %, A 60 % over all
+  # units, so A gains a quarter of what the bound gains.
+  base = np.array([[5, 10], [10, 20], [10, 20]])
+  bound = np.array([[9, 10], [18, 20], [18, 20]])
+  a = np.array([[6, 10], [12, 20], [12, 20]])
+  ci = stats.headroom_share(a, base, bound, stats.ratio, num_resamples=200)
+  assert ci.estimate == pytest.approx(0.25)
+  assert ci.low == pytest.approx(0.25) and ci.high == pytest.approx(0.25)  # the same in every unit
+  # Unequal units: each resample's share from its own sums, as a loop computes it.
+  rng = np.random.default_rng(3)
+  base, bound, a = (np.stack([rng.integers(1, 9, 7), np.full(7, 10)], -1) for _ in range(3))
+  bound = bound + np.stack([np.full(7, 10), np.full(7, 10)], -1)   # bound > base everywhere
+  counts = stats.resample_counts(7, 100, seed=1)
+  loop = []
+  for c in counts:
+    s = [(c[:, None] * d).sum(0) for d in (a, base, bound)]
+    r = [x[0] / x[1] for x in s]
+    loop.append((r[0] - r[1]) / (r[2] - r[1]))
+  ci = stats.headroom_share(a, base, bound, stats.ratio, counts=counts)
+  lo, hi = np.percentile(loop, [2.5, 97.5])
+  assert ci.low == pytest.approx(lo) and ci.high == pytest.approx(hi)
+  # No headroom: NaN, not a division by zero.
+  assert np.isnan(stats.headroom_share(a, base, base, stats.ratio, num_resamples=20).estimate)
+  with pytest.raises(ValueError, match="same shape"):
+    stats.headroom_share(a, base, bound[:3], stats.ratio)

@@ -143,6 +143,16 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   n_obs = int(valid.sum())
   assert res["alpha_hist"].sum() == n_obs == res["pixels"]["right"] + res["pixels"]["wrong"]
 
+  # The learned rule as a seventh method: set to D+R at the run's β it labels as D+R does (the
+  # same equations through other XLA fusions: a near tie may flip), and the oracle bounds it.
+  learned = jf.rules.learned_special_case("robust_dr", beta=config.run.beta)
+  with_learned = study.StudyConfig.of(height=H, width=W, capacity=CAPACITY, voxel_size=0.5,
+                                      learned=learned)
+  assert with_learned.methods == list(config.run.rules) + [study.LEARNED, study.ORACLE]
+  res = study.analyze_sequence(seq, preds, gt, with_learned)
+  assert np.abs(res["confusion"][study.LEARNED] - res["confusion"]["robust_dr"]).sum() <= 2
+  assert np.all(res["correct"][study.LEARNED] <= oracle)
+
 
 def test_histogram_auroc_and_median_against_direct_computation():
   rng = np.random.default_rng(3)
@@ -207,6 +217,20 @@ def test_tiny_study_end_to_end(tmp_path):
   assert len(os.listdir(tmp_path / "cache")) == 2 and front.calls == 2
   study.run_study(config, str(tmp_path), front_end=front)
   assert front.calls == 2                                   # the cache was reused
+  # A learned rule is a seventh row with its paired differences and share of the headroom.
+  learned = study.StudyConfig.of(layout_seeds=(0,), shifts=(0.0, 1.0), envs=("office",),
+                                 trajectories=(0,), num_frames=3, height=H, width=W,
+                                 num_samples=3, capacity=CAPACITY, num_resamples=50,
+                                 learned=jf.rules.learned_special_case("bayes"),
+                                 learned_source="the Bayesian special case")
+  out = study.run_study(learned, str(tmp_path / "learned"), front_end=front,
+                        cache_dir=str(tmp_path / "cache"))
+  shift1 = out["summary"]["1"]
+  assert "Learned" in shift1["methods"] and "Learned − D+R" in shift1["differences"]
+  assert set(shift1["oracle_share"]) == {"Sum probs", "Sum labels", "R", "D", "D+R", "Learned"}
+  assert "| Learned |" in out["table"]
+  assert "the Bayesian special case" in (tmp_path / "learned" / "study.md").read_text()
+  assert front.calls == 2
 
 
 def test_cli_study_help_and_bad_input(capsys):

@@ -390,3 +390,59 @@ def test_command(scene, tmp_path, monkeypatch, capsys):
   with pytest.raises(SystemExit):
     parser.parse_args(["simulate-sweep", "--x", "beta"])
   assert isinstance(args, argparse.Namespace)
+
+
+# --- the learned rule's column -------------------------------------------------------------------
+def test_learned_column_with_the_paper_rules_special_cases_matches_their_columns(scene):
+  """A learned rule set to Bayes (resp. D+R at the sweep's β) in every cell fuses the same views
+  as the sweep's own columns, so its confusions match theirs."""
+  grid = dict(x_param="cross_view_correlation", x_values=[0.0, 1.0], y_param="error_rate",
+              y_values=[0.4], voxel_size=VOXEL, base={"alpha_noise": 0.5}, num_draws=1,
+              progress=False)
+  for name, column in (("bayes", "Bayesian"), ("robust_dr", "D+R")):
+    rule = jf.rules.learned(jf.rules.learned_special_case(name, beta=0.3))
+    out = simulate.sweep_grid([scene], **grid, beta=0.3, learned=[[rule, rule]])
+    assert out["rules"] == list(simulate.SWEEP_RULES) + [simulate.LEARNED]
+    cms = out["confusion"][..., :, :]
+    ours, theirs = cms[..., -1, :, :], cms[..., out["rules"].index(column), :, :]
+    # The same equations through other XLA fusions: at most a voxel or two flips on a near tie.
+    assert np.abs(ours - theirs).sum() <= 4, (name, ours, theirs)
+  with pytest.raises(ValueError, match="one per cell"):
+    simulate.sweep_grid([scene], **grid, learned=[[rule]])
+
+
+def test_simulated_batch_and_per_cell_fits(scene, tmp_path):
+  model = sim.error_model(num_classes=K, error_rate=0.3, alpha_noise=0.5)
+  data = simulate.simulated_batch([scene, scene], model, seed=3)
+  assert data["frames"].probs.shape == (2,) + scene["labels"].shape + (K,)
+  assert data["mask"].all() and data["capacity"] >= len(scene["gt"]["labels"])
+  np.testing.assert_allclose(np.asarray(data["frames"].probs).sum(-1), 1.0, atol=1e-5)
+  # The batch is the sweep's own view of the sequence: sequence i, key fold_in(key(seed), i).
+  probs, _ = simulate._simulated_moments(  # pylint: disable=protected-access
+      jax.random.fold_in(jax.random.PRNGKey(3), 1), jnp.asarray(scene["labels"]),
+      jnp.asarray(scene["instances"]), jnp.asarray(scene["depth"]),
+      jnp.asarray(scene["T_world_cam"]), CAM, model, num_classes=K, regions="both")
+  np.testing.assert_array_equal(np.asarray(data["frames"].probs[1]), np.asarray(probs))
+  fits = simulate.fit_learned_rules([scene], [scene], x_param="cross_view_correlation",
+                                    x_values=[0.0], y_param="variance_separation",
+                                    y_values=[0.0, 4.0], base={"error_rate": 0.3}, steps=3,
+                                    eval_every=1, patience=2, voxel_size=VOXEL, progress=False)
+  assert [len(r) for r in fits] == [1, 1]
+  for (fit,) in fits:
+    assert fit.steps_run >= 1 and np.all(np.isfinite(fit.train_losses))
+  out = simulate.sweep_grid([scene], x_param="cross_view_correlation", x_values=[0.0],
+                            y_param="variance_separation", y_values=[0.0, 4.0],
+                            base={"error_rate": 0.3}, voxel_size=VOXEL, progress=False,
+                            learned=[[f.rule for f in row] for row in fits])
+  paths = simulate.write_results(str(tmp_path), out)
+  header = open(paths[1]).read().splitlines()[0]
+  assert "miou_Learned_minus_DR" in header and "oracle_share_Learned" in header
+
+
+def test_command_with_learned_column_refuses_the_judged_seed(scene, tmp_path, monkeypatch):
+  from jaxfusion.lab import cli
+  monkeypatch.setattr(simulate, "load_sequence", lambda spec, **kw: scene)
+  args = cli.build_parser().parse_args(["simulate-sweep", "--quick", "--out", str(tmp_path),
+                                        "--learned", "--learned-seeds", "0", "12"])
+  with pytest.raises(ValueError, match="must differ"):
+    args.func(args)

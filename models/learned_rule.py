@@ -1,0 +1,33 @@
+"""The shipped parameters of the learned fusion rule, fitted on this package's network.
+
+`jaxfusion.rules.learned` (docs/equations.md §3.9) weights each pixel's observation by features
+of the front end's MC mean and variance, so its parameters belong to one front end: those here
+were fitted by `jaxfusion learn-rule` on the shipped network's outputs on calibration layouts
+(`weights/learned_rule/record.json` says which data, steps, losses and time; the command that
+reproduces them is in it).
+
+    rule = jaxfusion_models.load_learned_rule()        # a FusionRule, like rules.robust_dr()
+"""
+
+import pathlib
+
+from jaxfusion import learn
+from jaxfusion import rules
+
+from .checkpoint import WEIGHTS_DIR
+
+LEARNED_RULE_DIR = pathlib.Path(WEIGHTS_DIR) / "learned_rule"
+LEARNED_RULE_PATH = LEARNED_RULE_DIR / "params.json"
+LEARNED_RULE_RECORD = LEARNED_RULE_DIR / "record.json"
+
+
+def load_learned_rule(*, aggregate: str = "sum") -> rules.FusionRule:
+  """The learned rule with the shipped parameters (`LEARNED_RULE_PATH`).
+
+  Args:
+    aggregate: how a voxel's pixels combine within a frame, "sum" or "mean" (as every rule).
+
+  Returns:
+    `rules.learned(params, aggregate=aggregate)`.
+  """
+  return rules.learned(learn.load_params(str(LEARNED_RULE_PATH)), aggregate=aggregate)
