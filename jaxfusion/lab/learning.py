@@ -94,6 +94,21 @@ def _check_seeds(train: Sequence[int], validation: Sequence[int]) -> None:
                      f"study, tuning protocol: {list(JUDGED_SEEDS)}); train on others")
 
 
+# Parsed arguments that are not options of learn-rule (the sub-command's name, the handler) or
+# that it does not read (the tuning commands' rule and single shift).
+_NOT_OPTIONS = ("func", "command", "rule", "shift")
+
+
+def command_line(args) -> str:
+  """The `jaxfusion learn-rule` command line that reproduces `args` (every option spelled out)."""
+  def value(v):
+    return " ".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)
+  parts = [f"--{k.replace('_', '-')}" + ("" if v is True else f" {value(v)}")
+           for k, v in sorted(vars(args).items())
+           if k not in _NOT_OPTIONS and v not in (None, False)]
+  return " ".join(["jaxfusion learn-rule"] + parts)
+
+
 def command(args) -> int:
   """Runs `jaxfusion learn-rule`; returns the exit status."""
   if args.quick:
@@ -130,9 +145,7 @@ def command(args) -> int:
   reports.write_json(os.path.join(args.out, "params.json"),
                      {"rule": "learned", "params": result.params}, indent=2)
   record = {
-      "command": "jaxfusion learn-rule " + " ".join(
-          f"--{k.replace('_', '-')} {v}" for k, v in sorted(vars(args).items())
-          if k not in ("func",) and v not in (None, False)),
+      "command": command_line(args),
       "data": {"train": train["names"], "validation": validation["names"],
                "shifts": args.shifts, "frames": args.frames, "height": args.height,
                "width": args.width, "num_samples": args.num_samples,

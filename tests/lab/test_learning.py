@@ -70,3 +70,13 @@ def test_load_params_rejects_other_files(tmp_path):
   path.write_text(json.dumps({"params": {"mix": 3.0}}))
   with pytest.raises(ValueError, match="mix must lie"):
     learn.load_params(str(path))
+
+
+def test_recorded_command_line_parses_back_to_the_same_options():
+  parser = cli.build_parser()
+  args = parser.parse_args(["learn-rule", "--frames", "30", "--shifts", "0.5", "1.0",
+                            "--train-seeds", "11", "12", "--scalar-beta", "--out", "x"])
+  line = learning.command_line(args)
+  assert line.startswith("jaxfusion learn-rule --") and "--shifts 0.5 1.0" in line
+  again = parser.parse_args(line.split()[1:])
+  assert vars(again) == vars(args)
