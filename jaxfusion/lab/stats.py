@@ -165,11 +165,7 @@ def headroom_share(data_a, data_base, data_bound, statistic: Callable, *,
     data_a: `(S, ...)` per-unit data of method A.
     data_base: `(S, ...)` of the base method, the same units in the same order.
     data_bound: `(S, ...)` of the bound.
-    statistic: as in `bootstrap`.
-    counts: `(B, S)` resample counts to reuse; default drawn from `seed`.
-    num_resamples: B when `counts` is not given.
-    confidence: coverage in (0, 1).
-    seed: seed when `counts` is not given.
+    statistic, counts, num_resamples, confidence, seed: as in `paired_difference`.
 
   Returns:
     `Interval` of the share (1: A gains what the bound gains; 0: what the base does; NaN where
