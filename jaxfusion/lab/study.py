@@ -77,7 +77,7 @@ LEARNED = "learned"
 # Paired comparisons (A, B) reported as A − B, in this order (those whose rules are run).
 COMPARISONS = (("robust_dr", "bayes"), ("robust_dr", "sum_probs"), ("robust_r", "bayes"),
                ("robust_d", "bayes"), (LEARNED, "bayes"), (LEARNED, "robust_dr"),
-               (ORACLE, "bayes"))
+               (LEARNED, "robust_r"), (LEARNED, "robust_d"), (ORACLE, "bayes"))
 # α bins: 0.1 nat from 0 to 28 (α ≤ −log 1e-12 ≈ 27.6).
 ALPHA_EDGES = np.linspace(0.0, 28.0, 281)
 # The demo's layout seed; the study's default seeds avoid it.
