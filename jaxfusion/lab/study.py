@@ -68,6 +68,7 @@ from jaxfusion.lab import figures
 from jaxfusion import io
 from jaxfusion import metrics
 from jaxfusion.lab import stats
+from jaxfusion.datasets.classes import CLASS_NAMES
 from jaxfusion.rules.robust import DEFAULT_EPS
 
 HEADROOM = ("mostly right", "outvoted right", "never right")
@@ -379,7 +380,8 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     ("A − B" → `miou`, `accuracy` intervals), `headroom` (category → share interval),
     `recovered` (method → interval of the share of outvoted-right voxels labelled right, and
     `accuracy_by_category`), `oracle_share` (rule → interval of its mIoU gain over Bayes as a
-    share of the oracle's, `stats.headroom_share`), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
+    share of the oracle's, `stats.headroom_share`), `class_iou` (method → per-class IoU of the
+    confusions summed over all sequences, NaN for a class absent from GT and map), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
     `right_share` interval of right pixel observations), `num_sequences`.
   """
   units = config.run.units
@@ -395,11 +397,12 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     seq = [rows[tuple(u)] for u in units]
     cms = {m: np.stack([r["confusion"][m] for r in seq]) for m in methods}
     res = {"num_sequences": len(seq), "methods": {}, "differences": {}, "headroom": {},
-           "recovered": {}, "oracle_share": {}}
+           "recovered": {}, "oracle_share": {}, "class_iou": {}}
     for m in methods:
       res["methods"][display(m)] = {"miou": _iv(stats.bootstrap(cms[m], stats.miou, **kw)),
                                     "accuracy": _iv(stats.bootstrap(cms[m], stats.accuracy,
                                                                     **kw))}
+      res["class_iou"][display(m)] = [float(v) for v in metrics.iou_from_confusion(cms[m].sum(0))]
     for a, b in COMPARISONS:
       if a in cms and b in cms:
         res["differences"][f"{display(a)} − {display(b)}"] = {
@@ -496,6 +499,16 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
     lines.append(f"| {m} | " + " | ".join(_cell(summary[s]["oracle_share"][m], signed=True)
                                           for s in shifts) + " |")
   parts.append("\n".join(lines))
+  for s in dict.fromkeys([shifts[0], shifts[-1]]):
+    ious = summary[s]["class_iou"]
+    num_classes = len(next(iter(ious.values())))
+    names = CLASS_NAMES if len(CLASS_NAMES) == num_classes else [str(i) for i in range(num_classes)]
+    lines = [f"## Per-class IoU (%) at shift {s}, confusions summed over its sequences", "",
+             "| Method | " + " | ".join(names) + " |", "|---|" + "---|" * num_classes]
+    for m, iou in ious.items():
+      lines.append(f"| {m} | " + " | ".join("–" if not np.isfinite(v) else f"{100 * v:.1f}"
+                                           for v in iou) + " |")
+    parts.append("\n".join(lines))
   lines = ["## Front end: right pixel observations and α = −log var of the predicted class", "",
            "| Shift | right pixels (%) | median α right | median α wrong | AUROC(α: right vs "
            "wrong) |", "|---|---|---|---|---|"]

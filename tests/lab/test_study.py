@@ -229,6 +229,11 @@ def test_tiny_study_end_to_end(tmp_path):
   assert "Learned" in shift1["methods"] and "Learned − D+R" in shift1["differences"]
   assert set(shift1["oracle_share"]) == {"Sum probs", "Sum labels", "R", "D", "D+R", "Learned"}
   assert "| Learned |" in out["table"]
+  # Per-class IoU from the summed confusions, as metrics computes it for one matrix.
+  summed = sum(np.asarray(r["confusion"][study.LEARNED]) for r in out["sequences"]
+               if r["shift"] == 1.0)
+  np.testing.assert_allclose(shift1["class_iou"]["Learned"], jf.metrics.iou_from_confusion(summed))
+  assert "## Per-class IoU (%) at shift 1" in out["table"]
   assert "the Bayesian special case" in (tmp_path / "learned" / "study.md").read_text()
   assert front.calls == 2
 
