@@ -39,6 +39,8 @@ TRAINED = ("theta", "bias", "mix", "gate", "beta")
 # Where the parameters start (constrained values): D+R at the paper's β, with the weights and the
 # gate at sigmoid(3) ≈ 0.95 — inside the sigmoid's slope, so their gradients are not zero (at the
 # exact special case, sigmoid(30), they would be).
+# What early stopping may keep: the lowest validation loss or the highest validation mIoU.
+SELECTIONS = ("loss", "miou")
 START = {"theta": np.zeros(learned_lib.NUM_FEATURES, np.float32), "bias": 3.0, "mix": 0.9,
          "gate": np.array([3.0, 0.0, 0.0], np.float32), "beta": 0.3}
 
@@ -86,6 +88,8 @@ class FitResult:
     steps_run: steps taken before stopping.
     stopped_early: True if the patience ran out before `steps`.
     seconds: wall time of the fit.
+    validation_miou: `(step, pooled validation mIoU)` pairs when the fit selects by mIoU
+      (`select="miou"`), else empty.
   """
   params: dict
   rule: rules_lib.FusionRule
@@ -95,6 +99,7 @@ class FitResult:
   steps_run: int
   stopped_early: bool
   seconds: float
+  validation_miou: list = dataclasses.field(default_factory=list)
 
 
 def _loss_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float,
@@ -113,11 +118,22 @@ def _loss_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float,
   return loss
 
 
+def _miou_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float) -> Callable:
+  """`params → pooled map mIoU` of the batch's hard labels (one compiled `tune.sweep` call)."""
+  def miou(params):
+    rule = rules_lib.learned({**fixed, **constrain(params)}, aggregate=aggregate)
+    out = tune.sweep(data["frames"], data["camera"], data["coords"], data["labels"],
+                     rules_lib.stack([rule]), capacity=int(data["capacity"]),
+                     voxel_size=voxel_size, mask=data["mask"])
+    return float(np.asarray(out["miou_pooled"])[0])
+  return miou
+
+
 def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float = 0.05,
         eval_every: int = 10, patience: int = 5, start: Optional[dict] = None,
         per_class_beta: bool = True, eps: float = 1e-12,
         alpha0: float = rules_lib.DEFAULT_ALPHA0, aggregate: str = "sum",
-        voxel_size: float = 0.1, objective: str = "cross_entropy",
+        voxel_size: float = 0.1, objective: str = "cross_entropy", select: str = "loss",
         progress: Optional[Callable[[int, float, Optional[float]], None]] = None) -> FitResult:
   """Fits the learned rule on `train` with Adam, stopping early on `validation`.
 
@@ -135,6 +151,10 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     aggregate: "sum" or "mean".
     voxel_size: voxel edge in metres (the GT's).
     objective: `tune.OBJECTIVES`.
+    select: what early stopping keeps: "loss", the parameters with the lowest validation loss;
+      "miou", those with the highest pooled validation map mIoU (hard labels, `tune.sweep`), for
+      front ends where the loss and mIoU part ways. The patience counts evaluations without a
+      better value of the selected measure; both are recorded.
     progress: called as `progress(step, train_loss, validation_loss or None)` after each step.
 
   Returns:
@@ -147,6 +167,8 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
   for name, value in (("steps", steps), ("eval_every", eval_every), ("patience", patience)):
     if int(value) < 1:
       raise ValueError(f"{name} must be >= 1; got {value}")
+  if select not in SELECTIONS:
+    raise ValueError(f"select must be one of {SELECTIONS}; got {select!r}")
   tune.check_objective(objective)
   num_classes = int(np.shape(train["frames"].probs)[-1])
   if int(np.shape(validation["frames"].probs)[-1]) != num_classes:
@@ -163,21 +185,32 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, value
 
+  val_miou = _miou_fn(validation, fixed=fixed, aggregate=aggregate, voxel_size=voxel_size)
+
+  def evaluate(params, step):
+    """The validation loss, and the measure to maximise (−loss or mIoU)."""
+    loss = float(val_loss(params))
+    history.append((step, loss))
+    if select == "loss":
+      return loss, -loss
+    value = val_miou(params)
+    miou_history.append((step, value))
+    return loss, value
+
   started = time.perf_counter()
   params = start_params(num_classes, start=start, per_class_beta=per_class_beta)
   opt_state = optimizer.init(params)
-  best = (float(val_loss(params)), 0, params)
-  history, losses, waited, step = [(0, best[0])], [], 0, 0
+  history, miou_history, losses, waited, step = [], [], [], 0, 0
+  best = (evaluate(params, 0)[1], 0, params)
   while step < steps and waited < patience:
     params, opt_state, value = step_fn(params, opt_state)
     step += 1
     losses.append(float(value))
     current = None
     if step % eval_every == 0 or step == steps:
-      current = float(val_loss(params))
-      history.append((step, current))
-      if current < best[0]:
-        best, waited = (current, step, params), 0
+      current, measure = evaluate(params, step)
+      if measure > best[0]:
+        best, waited = (measure, step, params), 0
       else:
         waited += 1
     if progress is not None:
@@ -186,7 +219,8 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
             **{k: _plain(v) for k, v in constrain(best[2]).items()}}
   return FitResult(params=values, rule=rules_lib.learned(values, aggregate=aggregate),
                    train_losses=losses, validation=history, best_step=best[1], steps_run=step,
-                   stopped_early=step < steps, seconds=time.perf_counter() - started)
+                   stopped_early=step < steps, seconds=time.perf_counter() - started,
+                   validation_miou=miou_history)
 
 
 def _plain(x):

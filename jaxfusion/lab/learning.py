@@ -75,6 +75,9 @@ def add_parser(subparsers) -> None:
   parser.add_argument("--eval-every", type=int, default=10)
   parser.add_argument("--patience", type=int, default=4)
   parser.add_argument("--scalar-beta", action="store_true", help="one β (default: per class)")
+  parser.add_argument("--select", choices=learn.SELECTIONS, default="loss",
+                      help="what early stopping keeps: the lowest validation loss or the "
+                           "highest validation map mIoU")
   parser.add_argument("--out", default=DEFAULT_OUT, help="output folder")
   parser.add_argument("--quick", action="store_true",
                       help="smoke run: one env, one trajectory, one shift, 8 small frames, "
@@ -139,7 +142,7 @@ def command(args) -> int:
   result = learn.fit(train, validation, steps=args.steps, learning_rate=args.learning_rate,
                      eval_every=args.eval_every, patience=args.patience,
                      per_class_beta=not args.scalar_beta, aggregate=args.aggregate,
-                     voxel_size=args.voxel_size, progress=progress)
+                     voxel_size=args.voxel_size, select=args.select, progress=progress)
   bar.close()
   os.makedirs(args.out, exist_ok=True)
   reports.write_json(os.path.join(args.out, "params.json"),
@@ -153,6 +156,7 @@ def command(args) -> int:
       "objective": "cross_entropy", "steps_run": result.steps_run,
       "stopped_early": result.stopped_early, "best_step": result.best_step,
       "train_losses": result.train_losses, "validation": result.validation,
+      "select": args.select, "validation_miou": result.validation_miou,
       "seconds": {"data": loaded, "fit": result.seconds,
                   "total": time.perf_counter() - started},
       "params": result.params}

@@ -472,6 +472,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--learned-steps", type=int, default=40, help="at most this many steps")
   parser.add_argument("--learned-eval-every", type=int, default=5)
   parser.add_argument("--learned-patience", type=int, default=3)
+  parser.add_argument("--learned-select", choices=learn.SELECTIONS, default="loss",
+                      help="what each fit's early stopping keeps: the lowest validation loss "
+                           "or the highest validation map mIoU")
   defaults = error_model()._asdict()
   defaults["error_rate"] = 0.3
   for name in SWEEP_PARAMS:
@@ -510,11 +513,13 @@ def main(args: argparse.Namespace) -> int:
                     for s in specs] for seed in seeds]
     fits = fit_learned_rules(*calibration, **grid, seed=args.mc_seed + 1,
                              steps=args.learned_steps, eval_every=args.learned_eval_every,
-                             patience=args.learned_patience, voxel_size=args.voxel_size)
+                             patience=args.learned_patience, voxel_size=args.voxel_size,
+                             select=args.learned_select)
     learned = [[f.rule for f in row] for row in fits]
-    record = {"train_seed": seeds[0], "validation_seed": seeds[1],
+    record = {"train_seed": seeds[0], "validation_seed": seeds[1], "select": args.learned_select,
               "cells": [[{"params": f.params, "best_step": f.best_step,
                           "steps_run": f.steps_run, "validation": f.validation,
+                          "validation_miou": f.validation_miou,
                           "seconds": f.seconds} for f in row] for row in fits]}
   result = sweep_grid(sequences, **grid, beta=args.beta, num_draws=pick("draws"),
                       seed=args.mc_seed, voxel_size=args.voxel_size, learned=learned)

@@ -75,7 +75,8 @@ def test_load_params_rejects_other_files(tmp_path):
 def test_recorded_command_line_parses_back_to_the_same_options():
   parser = cli.build_parser()
   args = parser.parse_args(["learn-rule", "--frames", "30", "--shifts", "0.5", "1.0",
-                            "--train-seeds", "11", "12", "--scalar-beta", "--out", "x"])
+                            "--train-seeds", "11", "12", "--scalar-beta", "--select", "miou",
+                            "--out", "x"])
   line = learning.command_line(args)
   assert line.startswith("jaxfusion learn-rule --") and "--shifts 0.5 1.0" in line
   again = parser.parse_args(line.split()[1:])

@@ -3,6 +3,7 @@ best validation point, stops early, returns a valid rule, and refuses bad settin
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -66,6 +67,27 @@ def test_fit_stops_when_validation_does_not_improve(batches):
     np.testing.assert_allclose(res.params["beta"], np.asarray(start["beta"]), rtol=1e-5)
 
 
+def test_fit_selecting_by_miou_keeps_the_best_validation_miou(batches):
+  train, validation = batches
+  res = learn.fit(train, validation, steps=6, learning_rate=0.3, eval_every=2, patience=10,
+                  voxel_size=0.25, select="miou")
+  steps, mious = zip(*res.validation_miou)
+  assert steps == (0, 2, 4, 6) and [s for s, _ in res.validation] == list(steps)
+  assert res.best_step == steps[int(np.argmax(mious))]      # the first of equal maxima
+  # The kept rule's pooled validation mIoU is the best one recorded, computed independently:
+  # fuse each validation sequence and score its map with metrics.
+  from jaxfusion import tune  # pylint: disable=import-outside-toplevel
+  cms = [np.asarray(tune.confusion(
+      jf.batch.fuse_masked(jax.tree.map(lambda x, b=b: x[b], validation["frames"]),
+                           validation["mask"][b], validation["camera"], res.rule,
+                           capacity=validation["capacity"], num_classes=4, voxel_size=0.25,
+                           max_probes=jf.state.DEFAULT_MAX_PROBES),
+      validation["coords"][b], validation["labels"][b]))
+         for b in range(len(validation["names"]))]
+  assert jf.metrics.mean_iou(sum(cms)) == pytest.approx(max(mious), abs=1e-6)
+  assert learn.fit(train, validation, steps=2, voxel_size=0.25).validation_miou == []
+
+
 def test_fit_refuses_bad_settings(batches):
   train, validation = batches
   with pytest.raises(ValueError, match="steps must be >= 1"):
@@ -74,6 +96,8 @@ def test_fit_refuses_bad_settings(batches):
     learn.fit(train, validation, patience=0)
   with pytest.raises(ValueError, match="objective"):
     learn.fit(train, validation, objective="miou")
+  with pytest.raises(ValueError, match="select must be one of"):
+    learn.fit(train, validation, select="accuracy")
 
 
 def test_weight_grid_matches_the_rule_and_is_in_range():
