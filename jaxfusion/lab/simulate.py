@@ -13,7 +13,7 @@ import argparse
 import functools
 import os
 import time
-from typing import Optional, Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -57,41 +57,6 @@ def _sweep_rules(beta: float):
   return r_stack, dr_stack
 
 
-@functools.partial(jax.jit, static_argnames=(
-    "num_classes", "regions", "capacity", "voxel_size", "max_probes"))
-def _sweep_row(key, labels, instance_ids, depth, poses, camera, models, gt_coords, gt_labels,
-               r_stack, dr_stack, *, num_classes, regions, capacity, voxel_size, max_probes):
-  """Confusions `(X, 5, K, K)` of Bayes, R, D, D+R and the oracle, and the views' `wrong` and
-  α of the favoured class `(X, T, H, W)`, for X models (one sweep row) on one sequence."""
-  frames_t = jnp.arange(labels.shape[0], dtype=jnp.int32)
-  mask = jnp.ones(labels.shape[:1], bool)
-  fuse = functools.partial(batch.fuse_masked, capacity=capacity, num_classes=num_classes,
-                           voxel_size=voxel_size, max_probes=max_probes)
-
-  def fuse_and_score(frames, rule):
-    state = fuse(frames, mask, camera, rule)
-    return tune.confusion(state, gt_coords, gt_labels)
-
-  def cell(model):
-    one = functools.partial(simulate_frame, num_classes=num_classes, regions=regions)
-    view = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0, None, None))(
-        key, labels, instance_ids, frames_t, depth, poses, camera, model)
-    frames = fusion.Frame(depth, poses, view.probs, view.var)
-    by_rule = jax.vmap(fuse_and_score, in_axes=(None, 0))
-    cms_r = by_rule(frames, r_stack)
-    cms_dr = by_rule(frames, dr_stack)
-    oracle_probs = jnp.where(view.wrong[..., None],
-                             ORACLE_WEIGHT * view.probs + (1.0 - ORACLE_WEIGHT) / num_classes,
-                             view.probs)
-    cm_oracle = fuse_and_score(frames._replace(probs=oracle_probs, var=None),
-                               rules_lib.bayes())
-    cms = jnp.concatenate([cms_r, cms_dr, cm_oracle[None]])
-    var_f = jnp.take_along_axis(view.var, view.favoured[..., None], axis=-1)[..., 0]
-    return cms, view.wrong, -jnp.log(var_f + 1e-12)
-
-  return jax.lax.map(cell, models)
-
-
 def _views(key, labels, instance_ids, depth, poses, camera, model, *, num_classes, regions):
   """The simulated front end's view of every frame of one sequence (`SimulatedView`, `(T, …)`)."""
   frames_t = jnp.arange(labels.shape[0], dtype=jnp.int32)
@@ -102,20 +67,38 @@ def _views(key, labels, instance_ids, depth, poses, camera, model, *, num_classe
 
 @functools.partial(jax.jit, static_argnames=(
     "num_classes", "regions", "capacity", "voxel_size", "max_probes"))
-def _learned_row(key, labels, instance_ids, depth, poses, camera, models, gt_coords, gt_labels,
-                 learned_stack, *, num_classes, regions, capacity, voxel_size, max_probes):
-  """Confusions `(X, K, K)` of each cell's learned rule on the views `_sweep_row` fuses (the same
-  key, so the same draws)."""
+def _sweep_row(key, labels, instance_ids, depth, poses, camera, models, gt_coords, gt_labels,
+               r_stack, dr_stack, learned_stack=None, *, num_classes, regions, capacity,
+               voxel_size, max_probes):
+  """Confusions `(X, R, K, K)` of Bayes, R, D, D+R, the oracle (and each cell's learned rule
+  when `learned_stack` holds X of them), and the views' `wrong` and α of the favoured class
+  `(X, T, H, W)`, for X models (one sweep row) on one sequence."""
   mask = jnp.ones(labels.shape[:1], bool)
+  fuse = functools.partial(batch.fuse_masked, capacity=capacity, num_classes=num_classes,
+                           voxel_size=voxel_size, max_probes=max_probes)
+
+  def fuse_and_score(frames, rule):
+    state = fuse(frames, mask, camera, rule)
+    return tune.confusion(state, gt_coords, gt_labels)
 
   def cell(model_and_rule):
-    model, rule = model_and_rule
+    model, learned = model_and_rule
     view = _views(key, labels, instance_ids, depth, poses, camera, model,
                   num_classes=num_classes, regions=regions)
-    state = batch.fuse_masked(fusion.Frame(depth, poses, view.probs, view.var), mask, camera,
-                              rule, capacity=capacity, num_classes=num_classes,
-                              voxel_size=voxel_size, max_probes=max_probes)
-    return tune.confusion(state, gt_coords, gt_labels)
+    frames = fusion.Frame(depth, poses, view.probs, view.var)
+    by_rule = jax.vmap(fuse_and_score, in_axes=(None, 0))
+    cms_r = by_rule(frames, r_stack)
+    cms_dr = by_rule(frames, dr_stack)
+    oracle_probs = jnp.where(view.wrong[..., None],
+                             ORACLE_WEIGHT * view.probs + (1.0 - ORACLE_WEIGHT) / num_classes,
+                             view.probs)
+    cm_oracle = fuse_and_score(frames._replace(probs=oracle_probs, var=None),
+                               rules_lib.bayes())
+    cms = [cms_r, cms_dr, cm_oracle[None]]
+    if learned is not None:
+      cms.append(fuse_and_score(frames, learned)[None])
+    var_f = jnp.take_along_axis(view.var, view.favoured[..., None], axis=-1)[..., 0]
+    return jnp.concatenate(cms), view.wrong, -jnp.log(var_f + 1e-12)
 
   return jax.lax.map(cell, (models, learned_stack))
 
@@ -181,8 +164,8 @@ def fit_learned_rules(calibration: Sequence[dict], validation: Sequence[dict], *
     **fit_kwargs: passed to `learn.fit` (steps, learning_rate, eval_every, patience, ...).
   """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
-  rows = _grid_models(calibration, x_param=x_param, x_values=x_values, y_param=y_param,
-                      y_values=y_values, base=base)
+  rows = _grid(calibration, x_param=x_param, x_values=x_values, y_param=y_param,
+               y_values=y_values, base=base).models
   bar = tqdm(total=sum(len(r) for r in rows), desc="fit learned rules", disable=not progress)
   fits = []
   for row in rows:
@@ -196,8 +179,18 @@ def fit_learned_rules(calibration: Sequence[dict], validation: Sequence[dict], *
   return fits
 
 
-def _grid_models(sequences, *, x_param, x_values, y_param, y_values, base) -> list:
-  """`(Y, X)` nested lists of the cells' `ErrorModel`s (the axes and base checked)."""
+class _Grid(NamedTuple):
+  """A checked sweep grid: the X and Y values (floats), the fixed fields, K and the `(Y, X)`
+  nested lists of the cells' `ErrorModel`s."""
+  x_values: list
+  y_values: list
+  base: dict
+  num_classes: int
+  models: list
+
+
+def _grid(sequences, *, x_param, x_values, y_param, y_values, base) -> _Grid:
+  """Checks the axes, the base and the sequences' K, and builds every cell's `ErrorModel`."""
   for name in (x_param, y_param):
     if name not in SWEEP_PARAMS:
       raise ValueError(f"a sweep axis must be one of {SWEEP_PARAMS}; got {name!r}")
@@ -219,8 +212,9 @@ def _grid_models(sequences, *, x_param, x_values, y_param, y_values, base) -> li
   if len(num_classes) != 1:
     raise ValueError(f"all sequences must have the same K; got {sorted(num_classes)}")
   (num_classes,) = num_classes
-  return [[error_model(num_classes=num_classes, **base, **{x_param: xv, y_param: yv})
-           for xv in x_values] for yv in y_values]
+  models = [[error_model(num_classes=num_classes, **base, **{x_param: xv, y_param: yv})
+             for xv in x_values] for yv in y_values]
+  return _Grid(x_values, y_values, base, num_classes, models)
 
 
 def _stack_models(models: Sequence[ErrorModel]) -> ErrorModel:
@@ -263,20 +257,17 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
   Returns:
     dict with `rules` (`SWEEP_RULES`, then `LEARNED` when given), `x`/`y` (values),
     `miou`/`accuracy` `(Y, X, D, R)`,
-    `confusion (Y, X, D, 5, K, K)`, realised `error_rate`, `alpha_separation`, `auroc`
+    `confusion (Y, X, D, R, K, K)`, realised `error_rate`, `alpha_separation`, `auroc`
     `(Y, X)` (over all sequences and draws), and `seconds`.
   """
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
   if int(num_draws) < 1:
     raise ValueError(f"num_draws must be ≥ 1; got {num_draws}")
   check_regions(regions)
-  rows = _grid_models(sequences, x_param=x_param, x_values=x_values, y_param=y_param,
-                      y_values=y_values, base=base)
-  x_values = [float(v) for v in x_values]
-  y_values = [float(v) for v in y_values]
-  base = {k: v for k, v in (base or {}).items() if k not in (x_param, y_param)}
-  num_classes = int(sequences[0]["num_classes"])
-  learned_rows = None
+  x_values, y_values, base, num_classes, rows = _grid(
+      sequences, x_param=x_param, x_values=x_values, y_param=y_param, y_values=y_values,
+      base=base)
+  learned_rows = [None] * len(rows)
   if learned is not None:
     if len(learned) != len(y_values) or any(len(r) != len(x_values) for r in learned):
       raise ValueError(f"learned must hold {len(y_values)}×{len(x_values)} rules, one per cell")
@@ -303,19 +294,15 @@ def sweep_grid(sequences: Sequence[dict], *, x_param: str, x_values, y_param: st
     capacity = state_lib.capacity_for(len(seq["gt"]["labels"]))
     valid = np.asarray((seq["depth"] > 0) & (seq["labels"] >= 0)
                        & (seq["labels"] < num_classes))
+    sizes = dict(num_classes=num_classes, regions=regions, capacity=capacity,
+                 voxel_size=float(voxel_size), max_probes=max_probes)
     for d in range(int(num_draws)):
       key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), i), d)
       for yi, row in enumerate(rows):
-        sizes = dict(num_classes=num_classes, regions=regions, capacity=capacity,
-                     voxel_size=float(voxel_size), max_probes=max_probes)
         out_cms, wrong, alpha = _sweep_row(
             key, labels, instances, depth, poses, camera, _stack_models(row), gt_coords,
-            gt_labels, r_stack, dr_stack, **sizes)
-        cms[yi, :, d, :len(SWEEP_RULES)] += np.asarray(out_cms)
-        if learned_rows is not None:
-          cms[yi, :, d, len(SWEEP_RULES)] += np.asarray(_learned_row(
-              key, labels, instances, depth, poses, camera, _stack_models(row), gt_coords,
-              gt_labels, learned_rows[yi], **sizes))
+            gt_labels, r_stack, dr_stack, learned_rows[yi], **sizes)
+        cms[yi, :, d] += np.asarray(out_cms)
         wrong, alpha = np.asarray(wrong), np.asarray(alpha)
         for xi in range(len(x_values)):
           w, a = wrong[xi][valid], alpha[xi][valid]
