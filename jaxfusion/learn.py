@@ -5,9 +5,9 @@ cross-entropy `−log P(gt)` over the GT voxels the maps hold, by default), diff
 the whole `lax.scan` of frames with respect to the rule's parameters, and minimised with Adam.
 The parameters are optimised unconstrained (`constrain`): θ, b and γ as they are, `δ =
 sigmoid(m)` and `β = sigmoid(u)` (per class), so every step gives a valid rule; ε and α₀ stay
-fixed. Early stopping watches the same loss on a validation batch (other layouts than the
-training ones, never those the rule is judged on) every `eval_every` steps and keeps the best
-parameters seen.
+fixed. Early stopping watches the same loss (or, with `select="miou"`, the map mIoU) on a
+validation batch (other layouts than the training ones, never those the rule is judged on) every
+`eval_every` steps and keeps the best parameters seen.
 
 `fit` works on batches of sequences as `lab.tuning.load_sequence_batch` builds them: a dict
 with `frames` `(B, T, …)`, `mask` `(B, T)`, `camera`, `coords` `(B, N, 3)`, `labels` `(B, N)`
@@ -36,11 +36,11 @@ from jaxfusion import tune
 learned_lib = importlib.import_module("jaxfusion.rules.learned")
 
 TRAINED = ("theta", "bias", "mix", "gate", "beta")
+# What early stopping may keep: the lowest validation loss or the highest validation mIoU.
+SELECTIONS = ("loss", "miou")
 # Where the parameters start (constrained values): D+R at the paper's β, with the weights and the
 # gate at sigmoid(3) ≈ 0.95 — inside the sigmoid's slope, so their gradients are not zero (at the
 # exact special case, sigmoid(30), they would be).
-# What early stopping may keep: the lowest validation loss or the highest validation mIoU.
-SELECTIONS = ("loss", "miou")
 START = {"theta": np.zeros(learned_lib.NUM_FEATURES, np.float32), "bias": 3.0, "mix": 0.9,
          "gate": np.array([3.0, 0.0, 0.0], np.float32), "beta": 0.3}
 
@@ -80,7 +80,7 @@ class FitResult:
   """Output of `fit`.
 
   Attributes:
-    params: the learned rule's parameters at the best validation loss (floats and lists).
+    params: the learned rule's parameters at the kept validation point (floats and lists).
     rule: `rules.learned(params, aggregate=...)`.
     train_losses: the training loss before each step.
     validation: `(step, loss)` pairs, one per evaluation (step 0 is the start).
@@ -143,7 +143,8 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     steps: at most this many Adam steps.
     learning_rate: Adam step size in the unconstrained parameters.
     eval_every: evaluate the validation loss every this many steps.
-    patience: stop after this many evaluations without a better validation loss.
+    patience: stop after this many evaluations without a better value of the measure `select`
+      names.
     start: starting values (constrained) of some of `TRAINED` (default `START`, D+R-like).
     per_class_beta: fit one β per class (else one scalar).
     eps: ε of α, fixed.

@@ -4,8 +4,8 @@ layouts, with early stopping on other layouts, and write its parameters and a re
 The training layouts and the validation layouts are disjoint from each other and from every
 layout the rules are judged on (the demo's seed 0, the study's 1–3, the tuning protocol's 1–3).
 Sequences at several domain shifts go into one training batch. Outputs under `--out`:
-`params.json` (what `rules.learned` takes; `jaxfusion.learn.load_params` reads it), `record.json` (data, settings,
-steps, loss curves, time), `loss.png` and `weights.png` (the learned per-pixel weight over α and
+`params.json` (what `rules.learned` takes; `jaxfusion.learn.load_params` reads it), `record.json`
+(data, settings, steps, loss curves, time), `loss.png` and `weights.png` (the learned per-pixel weight over α and
 the max probability, beside D's α/ᾱ).
 """
 
@@ -56,8 +56,8 @@ def add_parser(subparsers) -> None:
       description="Fits rules.learned (docs/equations.md §3.9) by Adam on the cross-entropy of "
                   "the fused voxel posteriors against GT voxel labels, through the whole scan "
                   "of frames, on the training layout seeds at every --shifts value; stops when "
-                  "the same loss on the validation seeds has not improved for --patience "
-                  "evaluations; writes params.json, record.json, loss.png and weights.png.")
+                  "the same loss (or, with --select miou, the map mIoU) on the validation seeds "
+                  "has not improved for --patience evaluations; writes params.json, record.json, loss.png and weights.png.")
   parser.add_argument("--envs", nargs="+", choices=("office", "house"),
                       default=["office", "house"])
   parser.add_argument("--trajectories", nargs="+", type=int, choices=(0, 1, 2),
@@ -108,7 +108,7 @@ def command_line(args) -> str:
     return " ".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)
   parts = [f"--{k.replace('_', '-')}" + ("" if v is True else f" {value(v)}")
            for k, v in sorted(vars(args).items())
-           if k not in _NOT_OPTIONS and v not in (None, False)]
+           if k not in _NOT_OPTIONS and v is not None and v is not False]
   return " ".join(["jaxfusion learn-rule"] + parts)
 
 
