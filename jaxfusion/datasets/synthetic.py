@@ -40,7 +40,7 @@ import numpy as np
 from jaxfusion.camera import Camera
 from jaxfusion.datasets import appearance, camera_model, raycast, scene, sensor_noise, trajectories
 from jaxfusion.datasets.classes import BACKGROUND, CLASS_NAMES
-from jaxfusion.datasets.primitives import Primitives
+from jaxfusion.datasets.primitives import Primitives, rot_x, rot_y, rot_z
 from jaxfusion.datasets.camera_model import CameraState, SensingConfig
 from jaxfusion.datasets.sequence import RGBDFrame, RGBDSequence
 
@@ -97,12 +97,8 @@ def placement(env: str, seed: int = 0) -> np.ndarray:
   rng = np.random.default_rng([int(seed), ENVIRONMENTS.index(env), 6262])
   signs = rng.choice([-1.0, 1.0], size=3)
   yaw, pitch, roll = np.radians(signs * rng.uniform([5.0, 1.0, 1.0], [15.0, 3.0, 3.0]))
-  c, s = np.cos([yaw, pitch, roll]), np.sin([yaw, pitch, roll])
-  rz = np.array([[c[0], -s[0], 0.0], [s[0], c[0], 0.0], [0.0, 0.0, 1.0]])
-  ry = np.array([[c[1], 0.0, s[1]], [0.0, 1.0, 0.0], [-s[1], 0.0, c[1]]])
-  rx = np.array([[1.0, 0.0, 0.0], [0.0, c[2], -s[2]], [0.0, s[2], c[2]]])
   T = np.eye(4)
-  T[:3, :3] = rz @ ry @ rx
+  T[:3, :3] = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
   T[:3, 3] = rng.uniform(0.0, 0.1, size=3)
   return T
 
