@@ -24,20 +24,20 @@ def _import_open3d():
     return open3d
   except ImportError:
     pass
-  stubs = {}
+  stand_ins = {}
   for name in ("plotly", "plotly.graph_objects", "dash"):
     if name not in sys.modules:
-      stub = types.ModuleType(name)
-      stub.html = stub.dcc = stub.Dash = None
-      stubs[name] = stub
-  sys.modules.update(stubs)
+      module = types.ModuleType(name)
+      module.html = module.dcc = module.Dash = None      # the names open3d's viewers look up
+      stand_ins[name] = module
+  sys.modules.update(stand_ins)
   try:
     import open3d  # pylint: disable=import-outside-toplevel
     return open3d
   except ImportError:
     return None
   finally:
-    for name in stubs:
+    for name in stand_ins:
       sys.modules.pop(name, None)
 
 
