@@ -14,6 +14,7 @@ import numpy as np
 from flax import struct
 
 from jaxfusion import hashing
+from jaxfusion import tsdf as tsdf_lib
 from jaxfusion.rules import base as rules_base
 
 DEFAULT_MAX_PROBES = 64
@@ -41,6 +42,9 @@ class MapState:
   max_probes: int = struct.field(pytree_node=False)
   posterior_fn: Callable = struct.field(pytree_node=False)
   confidence_fn: Optional[Callable] = struct.field(pytree_node=False)
+  # The geometry layer (a TSDF of its own voxel size and hash), or None: a map without it is
+  # the same pytree, and is fused by the same program, as before the layer existed.
+  geometry: Optional[tsdf_lib.TSDFState] = None
 
   @property
   def capacity(self) -> int:
@@ -71,7 +75,8 @@ def _check_positive_int(value, name):
 
 
 def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
-             rule: rules_base.FusionRule, max_probes: int = DEFAULT_MAX_PROBES) -> MapState:
+             rule: rules_base.FusionRule, max_probes: int = DEFAULT_MAX_PROBES,
+             geometry=None) -> MapState:
   """Allocates an empty map at full capacity.
 
   Args:
@@ -82,6 +87,9 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
     rule: the FusionRule this map will be fused with; it owns the per-voxel rows.
     max_probes: bound on the linear-probing sequence; keys that find no slot within it are
       dropped and counted.
+    geometry: switches the geometry layer on: a `tsdf.TSDFConfig` (or a `TSDFState`, e.g. an
+      empty one from `tsdf.init_tsdf`); `fuse_frame` then integrates every frame's depth into
+      its TSDF in the same call. None (default): semantics only.
 
   Returns:
     A MapState with every slot empty and every row at the rule's prior.
@@ -104,6 +112,11 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
     size = float(np.asarray(voxel_size))
     if not (math.isfinite(size) and size > 0):
       raise ValueError(f"voxel_size must be a positive finite number of metres; got {size}")
+  if isinstance(geometry, tsdf_lib.TSDFConfig):
+    geometry = tsdf_lib.init_tsdf(geometry)
+  elif geometry is not None and not isinstance(geometry, tsdf_lib.TSDFState):
+    raise TypeError(f"geometry must be a jaxfusion.tsdf.TSDFConfig, a TSDFState or None; got "
+                    f"{type(geometry).__name__}")
   row = rule.init(num_classes, rule.hparams)
   rows = jax.tree.map(lambda x: jnp.tile(jnp.asarray(x, jnp.float32)[None], (capacity, 1)), row)
   return MapState(
@@ -118,6 +131,7 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
       max_probes=max_probes,
       posterior_fn=rule.posterior,
       confidence_fn=rule.confidence,
+      geometry=geometry,
   )
 
 
