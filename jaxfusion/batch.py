@@ -40,6 +40,7 @@ from jaxfusion import camera as camera_lib
 from jaxfusion import fusion
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
+from jaxfusion import tsdf
 from jaxfusion import validation
 from jaxfusion.rules import base as rules_base
 
@@ -120,7 +121,7 @@ def stack_sequences(sequences: Sequence[fusion.Frame], *, pad: bool = True
 # --- the per-map kernel and its batched forms ------------------------------------------------
 def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera,
                 rule: rules_base.FusionRule, *, capacity: int, num_classes: int,
-                voxel_size: float, max_probes: int) -> state_lib.MapState:
+                voxel_size: float, max_probes: int, geometry=None) -> state_lib.MapState:
   """One map, pure and jittable: `init_map` then `fuse_sequence` of the frames where `mask`.
 
   Args:
@@ -132,6 +133,7 @@ def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera
     num_classes: K.
     voxel_size: voxel edge in metres.
     max_probes: hash probe bound.
+    geometry: a `tsdf.TSDFConfig` for a geometry layer, or None.
 
   Returns:
     The fused MapState.
@@ -139,7 +141,7 @@ def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera
   assert frames.depth.ndim == 3 and mask.shape == frames.depth.shape[:1], (
       frames.depth.shape, mask.shape)
   state = state_lib.init_map(capacity=capacity, num_classes=num_classes, voxel_size=voxel_size,
-                             rule=rule, max_probes=max_probes)
+                             rule=rule, max_probes=max_probes, geometry=geometry)
   depth = jnp.where(mask[:, None, None], jnp.asarray(frames.depth, jnp.float32), 0.0)
   return fusion.fuse_sequence_unchecked(state, frames._replace(depth=depth), camera, rule)
 
@@ -168,14 +170,15 @@ def shard_leading(fn, mesh: Optional[Mesh], sharded: tuple):
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "capacity", "num_classes", "max_probes", "frames_axis", "rule_axis", "camera_axis", "mesh"))
+    "capacity", "num_classes", "max_probes", "frames_axis", "rule_axis", "camera_axis", "mesh",
+    "geometry"))
 def _fuse_many(frames, mask, camera, rule, voxel_size, *, capacity, num_classes, max_probes,
-               frames_axis, rule_axis, camera_axis, mesh):
+               frames_axis, rule_axis, camera_axis, mesh, geometry=None):
   # `voxel_size` is traced, not static: as a compile-time constant XLA may fold `x / s` into
   # `x · (1/s)`, whose rounding puts far-away points (|x| ≳ 10⁴ voxels) in other voxels than
   # `fuse_frame` / `fuse_sequence` (which get it at run time) put them.
   one = functools.partial(fuse_masked, capacity=capacity, num_classes=num_classes,
-                          voxel_size=voxel_size, max_probes=max_probes)
+                          voxel_size=voxel_size, max_probes=max_probes, geometry=geometry)
   fn = map_over(one, frames_axis=frames_axis, rule_axis=rule_axis, camera_axis=camera_axis)
   sharded = ((frames_axis and not rule_axis,) * 2 + (camera_axis and not rule_axis,)
              + (rule_axis,))
@@ -295,7 +298,7 @@ def num_stacked_rules(rules: rules_base.FusionRule) -> int:
 def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionRule, *,
                capacity: int, voxel_size: float = 0.1, mask=None,
                max_probes: int = state_lib.DEFAULT_MAX_PROBES,
-               mesh: Optional[Mesh] = None) -> state_lib.MapState:
+               mesh: Optional[Mesh] = None, geometry=None) -> state_lib.MapState:
   """Fuses B sequences into B maps of one capacity, in one compiled call.
 
   Args:
@@ -309,6 +312,7 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
     mask: `(B, T) bool`, False for padded frames (default: all True).
     max_probes: hash probe bound.
     mesh: shard the B sequences over this mesh's devices (see `make_mesh`); None: one device.
+    geometry: a `tsdf.TSDFConfig`: every map carries a geometry layer of this configuration.
 
   Returns:
     A MapState whose arrays have a leading `(B,)` axis; map b equals `fuse_sequence` of
@@ -316,6 +320,9 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
   """
   if not isinstance(rule, rules_base.FusionRule):
     raise TypeError(f"rule must be a FusionRule; got {type(rule).__name__}")
+  if geometry is not None and not isinstance(geometry, tsdf.TSDFConfig):
+    raise TypeError(f"geometry must be a jaxfusion.tsdf.TSDFConfig or None; got "
+                    f"{type(geometry).__name__}")
   num_classes = np.shape(frames.probs)[-1] if isinstance(frames, fusion.Frame) else None
   mask = check_batch_frames(frames, mask, rule, batch_dims=2, num_classes=num_classes)
   batch = mask.shape[0]
@@ -331,7 +338,7 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
     rule = put_sharded(rule, mesh, sharded=False)
   states = _fuse_many(frames, mask, camera, rule, np.float32(voxel_size), capacity=capacity,
                       num_classes=num_classes, max_probes=max_probes, frames_axis=True,
-                      rule_axis=False, camera_axis=camera_axis, mesh=mesh)
+                      rule_axis=False, camera_axis=camera_axis, mesh=mesh, geometry=geometry)
   return jax.tree.map(lambda x: x[:batch], states) if size != batch else states
 
 

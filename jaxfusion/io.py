@@ -6,6 +6,7 @@ each one's zip CRC and turns any way a file can be broken (empty, truncated, a f
 another kind of file, pickled objects) into one `BadFileError` that names the file.
 """
 
+import dataclasses
 import hashlib
 import io as _bytes_io
 import json
@@ -236,6 +237,10 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
   }
   for name, value in state.rows.items():
     arrays[f"rows/{name}"] = np.asarray(value)
+  if state.geometry is not None:
+    meta["geometry"] = dataclasses.asdict(state.geometry.config())
+    for name in GEOMETRY_ARRAYS:
+      arrays[f"geometry/{name}"] = np.asarray(getattr(state.geometry, name))
   if poses is not None:
     arrays["poses"] = poses
   arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
@@ -248,6 +253,9 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
 
 
 MAP_FILE = "jaxfusion map file"
+# The geometry layer's arrays in a map file (as `geometry/NAME`); its settings are in the
+# metadata's "geometry" entry (a TSDFConfig as a dict).
+GEOMETRY_ARRAYS = ("block_keys", "claims", "sdf", "weight", "num_blocks", "num_dropped")
 
 
 def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
@@ -266,11 +274,15 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
     raise BadFileError(f"{path}: unsupported map format version {meta.get('format_version')}")
   check_array(path, MAP_FILE, "voxel_size", data["voxel_size"], (), np.float32)
   from jaxfusion.state import init_map   # deferred: keeps io importable on its own
+  from jaxfusion import tsdf as tsdf_lib
   try:
     rule = rule_from_metadata(meta["rule"])
+    geometry = meta.get("geometry")
+    if geometry is not None:
+      geometry = tsdf_lib.TSDFConfig(**geometry)
     state = init_map(capacity=int(meta["capacity"]), num_classes=int(meta["num_classes"]),
                      voxel_size=float(data["voxel_size"]), rule=rule,
-                     max_probes=int(meta["max_probes"]))
+                     max_probes=int(meta["max_probes"]), geometry=geometry)
     names = meta.get("class_names")
     if names is not None and len(names) != state.num_classes:
       raise ValueError(f"{len(names)} class names for {state.num_classes} classes")
@@ -280,6 +292,9 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
   fields = ("keys", "hits", "claims", "num_occupied", "num_dropped")
   expected = {name: np.asarray(getattr(state, name)) for name in fields}
   expected.update({f"rows/{name}": np.asarray(v) for name, v in state.rows.items()})
+  if state.geometry is not None:
+    expected.update({f"geometry/{name}": np.asarray(getattr(state.geometry, name))
+                     for name in GEOMETRY_ARRAYS})
   stored_rows = {k for k in data if k.startswith("rows/")}
   if stored_rows != {k for k in expected if k.startswith("rows/")}:
     raise BadFileError(f"{path} is not a {MAP_FILE} (rows {sorted(stored_rows)} do not match "
@@ -295,6 +310,9 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
       num_occupied=jnp.asarray(data["num_occupied"]),
       num_dropped=jnp.asarray(data["num_dropped"]),
       voxel_size=jnp.asarray(data["voxel_size"]))
+  if state.geometry is not None:
+    state = state.replace(geometry=state.geometry.replace(
+        **{name: jnp.asarray(data[f"geometry/{name}"]) for name in GEOMETRY_ARRAYS}))
   return state, rule, meta
 
 
@@ -375,5 +393,72 @@ def export_ply(path: str, voxels: dict, *, voxel_size: float,
 
   def write(tmp):
     geometry.export(tmp, file_type="ply")
+
+  atomic_write(path, write)
+
+
+MESH_FORMATS = ("ply", "obj", "glb")
+MESH_COLORINGS = ("class", "confidence", "entropy")
+# Colour of vertices with no semantic voxel (label −1).
+UNLABELLED_RGB = (160, 160, 160)
+
+
+def mesh_colors(mesh, *, color_by: str = "class", colors: Optional[np.ndarray] = None,
+                num_classes: Optional[int] = None) -> np.ndarray:
+  """`(P, 4) uint8` RGBA per vertex of a `mesh.Mesh`: its class in the palette, or its
+  confidence (viridis over [0, 1]) or entropy (viridis over [0, log K]); grey where the vertex
+  has no semantic voxel (label −1) or the mesh has no labels."""
+  import matplotlib
+  if color_by not in MESH_COLORINGS:
+    raise ValueError(f"color_by must be one of {MESH_COLORINGS}; got {color_by!r}")
+  n = mesh.num_vertices
+  rgba = np.empty((n, 4), np.uint8)
+  rgba[:, :3] = UNLABELLED_RGB
+  rgba[:, 3] = 255
+  if mesh.labels is None:
+    return rgba
+  labelled = mesh.labels >= 0
+  if color_by == "class":
+    k = num_classes if num_classes is not None else int(mesh.labels.max(initial=0)) + 1
+    palette = np.asarray(default_palette(k) if colors is None else colors, np.uint8)
+    if np.any(mesh.labels >= len(palette)):
+      raise ValueError(f"labels must index the {len(palette)} colours")
+    rgba[labelled, :3] = palette[mesh.labels[labelled]]
+    return rgba
+  if color_by == "confidence":
+    value = mesh.confidence
+  else:
+    k = num_classes if num_classes is not None else int(mesh.labels.max(initial=0)) + 1
+    value = mesh.entropy / np.log(max(k, 2))
+  cmap = matplotlib.colormaps["viridis"]
+  rgba[labelled, :3] = (np.asarray(cmap(np.clip(value[labelled], 0.0, 1.0)))[:, :3]
+                        * 255).astype(np.uint8)
+  return rgba
+
+
+def save_mesh(path: str, mesh, *, color_by: str = "class", colors: Optional[np.ndarray] = None,
+              num_classes: Optional[int] = None) -> None:
+  """Writes a `mesh.Mesh` as PLY, OBJ or GLB (by the file's extension, through trimesh), its
+  vertices coloured by class, confidence or entropy (`mesh_colors`). PLY also keeps each
+  vertex's label, confidence and entropy as vertex properties."""
+  import trimesh
+  fmt = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+  if fmt not in MESH_FORMATS:
+    raise ValueError(f"mesh files must end in one of {['.' + f for f in MESH_FORMATS]}; got "
+                     f"{os.fspath(path)!r}")
+  rgba = mesh_colors(mesh, color_by=color_by, colors=colors, num_classes=num_classes)
+  geometry = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64),
+                             np.asarray(mesh.faces, np.int64), vertex_colors=rgba,
+                             vertex_normals=np.asarray(mesh.normals, np.float64), process=False)
+  if fmt == "ply" and mesh.labels is not None:
+    geometry.vertex_attributes["label"] = np.asarray(mesh.labels, np.int32)
+    geometry.vertex_attributes["confidence"] = np.asarray(mesh.confidence, np.float32)
+    geometry.vertex_attributes["entropy"] = np.asarray(mesh.entropy, np.float32)
+
+  def write(tmp):
+    kwargs = {"include_attributes": True} if fmt == "ply" else {}
+    data = geometry.export(file_type=fmt, **kwargs)
+    with open(tmp, "wb") as f:
+      f.write(data if isinstance(data, bytes) else data.encode())
 
   atomic_write(path, write)

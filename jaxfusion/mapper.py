@@ -25,8 +25,10 @@ import numpy as np
 
 from jaxfusion import camera as camera_lib
 from jaxfusion import fusion
+from jaxfusion import grouping
 from jaxfusion import hashing
 from jaxfusion import state as state_lib
+from jaxfusion import tsdf as tsdf_lib
 from jaxfusion.rules import base as rules_base
 
 
@@ -54,7 +56,7 @@ def new_voxel_count(state: state_lib.MapState, depth: jax.Array, T_world_cam: ja
   valid = in_range & (depth > 0).reshape(in_range.shape) & jnp.isfinite(depth).reshape(
       in_range.shape)
   keys, valid = keys.reshape(-1, 3), valid.reshape(-1)
-  groups = fusion.group_pixels(keys, valid)
+  groups = grouping.group_pixels(keys, valid)
   group_keys = keys[groups.first_pixel]
   _, found = hashing.lookup(state.keys, group_keys, max_probes=state.max_probes)
   is_group = jnp.arange(keys.shape[0]) < groups.num_groups
@@ -80,18 +82,21 @@ class Mapper:
     max_capacity: the largest capacity it may grow to (at most 2**30); beyond it the map stays
       and a full map drops voxels (counted, `MapFullWarning`), as a fixed one does.
     max_probes: the map's probe bound.
+    geometry: a `tsdf.TSDFConfig` to carry a geometry layer (None: semantics only); its block
+      table grows by the same rule, `grow_at` of its capacity, up to 2**24 blocks.
 
   Attributes:
     state: the current MapState (a new object after every call; do not keep old ones, they are
       donated to `fuse_frame`).
     growths: `[(frames_fused, old_capacity, new_capacity)]`, one entry per growth.
+    geometry_growths: the same for the geometry layer's block table.
     frames_fused: frames fused so far.
   """
 
   def __init__(self, rule: rules_base.FusionRule, *, num_classes: int,
                voxel_size: float = 0.1, capacity: int = 2**16, grow_at: float = 0.5,
                max_capacity: int = 2**30,
-               max_probes: int = state_lib.DEFAULT_MAX_PROBES):
+               max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None):
     if not 0.0 < grow_at < 1.0:
       raise ValueError(f"grow_at must lie in (0, 1); got {grow_at}")
     if not isinstance(max_capacity, (int, np.integer)) or max_capacity > 2**30:
@@ -100,10 +105,14 @@ class Mapper:
     self.grow_at = float(grow_at)
     self.max_capacity = int(max_capacity)
     self.state = state_lib.init_map(capacity=capacity, num_classes=num_classes,
-                                    voxel_size=voxel_size, rule=rule, max_probes=max_probes)
+                                    voxel_size=voxel_size, rule=rule, max_probes=max_probes,
+                                    geometry=geometry)
+    # The most blocks one call has added so far: the geometry layer's cheap room check.
+    self._blocks_per_call = None
     if self.state.capacity > self.max_capacity:
       raise ValueError(f"capacity {self.state.capacity} exceeds max_capacity {max_capacity}")
     self.growths = []
+    self.geometry_growths = []
     self.frames_fused = 0
 
   @property
@@ -111,7 +120,10 @@ class Mapper:
     return self.state.capacity
 
   def _ensure_room(self, depth, T_world_cam, camera) -> None:
-    """Grows the map first if the frames `(T, H, W)` could push it past `grow_at`."""
+    """Grows the map (and its geometry layer) first if the frames `(T, H, W)` could push it
+    past `grow_at`."""
+    if self.state.geometry is not None:
+      self._ensure_geometry_room(depth, T_world_cam, camera)
     occupied = int(self.state.num_occupied)
     limit = self.grow_at * self.state.capacity
     if occupied + _valid_depth_count(depth) <= limit:
@@ -129,6 +141,25 @@ class Mapper:
     old = self.state.capacity
     self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
     self.growths.append((self.frames_fused, old, capacity))
+
+  def _ensure_geometry_room(self, depth, T_world_cam, camera) -> None:
+    """Grows the geometry layer's block table before frames that could fill it past
+    `grow_at`. The exact count (`tsdf.new_block_count`, a grouping of the frames' ray samples)
+    runs only when four times the most blocks a call has added so far could cross the line."""
+    geometry = self.state.geometry
+    blocks = int(geometry.num_blocks)
+    limit = self.grow_at * geometry.capacity
+    if self._blocks_per_call is not None and blocks + 4 * self._blocks_per_call <= limit:
+      return
+    new = int(tsdf_lib.new_block_count(geometry, jnp.asarray(depth, jnp.float32),
+                                       jnp.asarray(T_world_cam, jnp.float32), camera))
+    self._blocks_per_call = max(self._blocks_per_call or 0, new)
+    capacity = geometry.capacity
+    while blocks + new > self.grow_at * capacity and capacity < 2**24:
+      capacity *= 2
+    if capacity != geometry.capacity:
+      self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
+      self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
 
   def fuse(self, frame: fusion.Frame, camera: camera_lib.Camera) -> state_lib.MapState:
     """Fuses one frame (`fuse_frame`), growing the map first if it could overfill."""
