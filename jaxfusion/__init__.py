@@ -1,9 +1,10 @@
 """jaxfusion: robust Bayesian semantic voxel mapping in JAX.
 
 The pipeline: camera geometry → spatial hash → map state → fusion rules → `fuse_frame` →
-readout → metrics. Batches, sweeps and tuning build on it (`batch`, `tune`); the synthetic
-world and real-data readers live in `jaxfusion.datasets`, the simulated front end in
-`jaxfusion.simulation`, map files in `jaxfusion.io`. The equations are in docs/equations.md.
+readout → metrics; beside the semantics, a geometry layer (`tsdf`, a TSDF fused in the same
+call) and its meshes (`mesh`, marching cubes). Batches, sweeps and tuning build on it
+(`batch`, `tune`); the synthetic world and real-data readers live in `jaxfusion.datasets`, the
+simulated front end in `jaxfusion.simulation`, map files in `jaxfusion.io`. The equations are in docs/equations.md.
 
 This package is the library. The application (commands, studies, figures, the viewer) is
 `jaxfusion.lab`, which this package never imports.
@@ -13,9 +14,11 @@ from jaxfusion import batch
 from jaxfusion import datasets
 from jaxfusion import io
 from jaxfusion import learn
+from jaxfusion import mesh
 from jaxfusion import metrics
 from jaxfusion import rules
 from jaxfusion import sources
+from jaxfusion import tsdf
 from jaxfusion import tune
 from jaxfusion.batch import fuse_batch
 from jaxfusion.batch import fuse_sweep
@@ -29,6 +32,9 @@ from jaxfusion.fusion import fuse_frame
 from jaxfusion.fusion import fuse_sequence
 from jaxfusion.hashing import EMPTY
 from jaxfusion.mapper import Mapper
+from jaxfusion.mesh import Mesh
+from jaxfusion.mesh import extract_mesh
+from jaxfusion.mesh import mesh_by_class
 from jaxfusion.readout import QueryResult
 from jaxfusion.readout import query
 from jaxfusion.readout import read_map
@@ -43,13 +49,17 @@ from jaxfusion.state import init_map
 from jaxfusion.state import map_stats
 from jaxfusion.tune import calibration_loss
 from jaxfusion.tune import sweep_beta
+from jaxfusion.tsdf import TSDFConfig
+from jaxfusion.tsdf import TSDFState
+from jaxfusion.tsdf import init_tsdf
 from jaxfusion.tune import tune_hparams
 
 __version__ = "0.1.0"
 
 __all__ = sorted([
     "Camera", "ClassMap", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "Mapper",
-    "QueryResult", "batch", "calibration_loss", "capacity_for", "datasets", "fuse_batch",
+    "Mesh", "QueryResult", "TSDFConfig", "TSDFState", "extract_mesh", "init_tsdf", "mesh",
+    "mesh_by_class", "tsdf", "batch", "calibration_loss", "capacity_for", "datasets", "fuse_batch",
     "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "learn",
     "make_mesh", "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules",
     "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
