@@ -16,6 +16,7 @@
 import argparse
 from typing import Optional, Sequence
 
+import jaxfusion as jf
 from jaxfusion.datasets import synthetic
 
 
@@ -90,6 +91,24 @@ def add_fusion(parser: argparse.ArgumentParser, *, beta: Optional[float] = 0.3,
   if voxels:
     parser.add_argument("--voxel-size", type=float, default=voxel_size,
                         help="voxel edge in metres")
+
+
+def add_geometry(parser: argparse.ArgumentParser) -> None:
+  """`--geometry-voxel-size`, `--truncation`, `--no-geometry`: the map's TSDF layer."""
+  parser.add_argument("--geometry-voxel-size", type=float, default=0.05,
+                      help="voxel edge of the geometry layer (TSDF) in metres")
+  parser.add_argument("--truncation", type=float, default=4.0,
+                      help="TSDF truncation τ in geometry voxels")
+  parser.add_argument("--no-geometry", action="store_true",
+                      help="semantics only: no TSDF layer and no mesh")
+
+
+def geometry_config(args):
+  """The TSDFConfig of `add_geometry`'s flags (None with --no-geometry)."""
+  if getattr(args, "no_geometry", False):
+    return None
+  return jf.tsdf.TSDFConfig(voxel_size=args.geometry_voxel_size,
+                            truncation_voxels=args.truncation)
 
 
 def add_grid(parser: argparse.ArgumentParser, *, envs: Optional[Sequence[str]],

@@ -136,7 +136,7 @@ def run_command(args: argparse.Namespace) -> int:
       if mapper is None:
         num_classes = frames.probs.shape[-1]
         mapper = jf.Mapper(rule, num_classes=num_classes, voxel_size=args.voxel_size,
-                           capacity=args.capacity)
+                           capacity=args.capacity, geometry=flags.geometry_config(args))
       mapper.fuse_sequence(frames, seq.camera)
       bar.update(count)
   state = mapper.state
@@ -161,6 +161,12 @@ def run_command(args: argparse.Namespace) -> int:
   io.export_ply(stem + ".ply", voxels, voxel_size=args.voxel_size,
                 colors=datasets.palette(num_classes if names is None else names))
   print(f"map: {len(voxels['coords'])} voxels → {stem}.npz, {stem}.ply")
+  if state.geometry is not None:
+    surface = jf.extract_mesh(state)
+    io.save_mesh(stem + "_mesh.ply", surface, colors=datasets.palette(
+        num_classes if names is None else names), num_classes=num_classes)
+    print(f"mesh: {surface.num_vertices} vertices, {surface.num_faces} triangles → "
+          f"{stem}_mesh.ply")
   if seq.labels is not None and scored:
     gt = datasets.gt_voxel_labels(seq, voxel_size=args.voxel_size)
     gt_path = stem + "_gt.npz"
@@ -206,13 +212,26 @@ def eval_command(args: argparse.Namespace) -> int:
 
 
 def export_command(args: argparse.Namespace) -> int:
-  """Runs `jaxfusion export`: writes a saved map as a class-coloured PLY."""
+  """Runs `jaxfusion export`: writes a saved map as a class-coloured PLY of its voxels
+  (`--out`) and/or a mesh of its geometry layer (`--mesh`, PLY / OBJ / GLB)."""
+  if args.out is None and args.mesh is None:
+    raise ValueError("export: give --out (voxels as PLY) and/or --mesh (mesh as .ply/.obj/.glb)")
   state, _, meta = io.load_map(args.map)
-  voxels = jf.read_map(state)
-  io.export_ply(args.out, voxels, voxel_size=float(state.voxel_size),
-                colors=datasets.palette(meta["class_names"] or state.num_classes),
-                mode=args.mode)
-  print(f"{len(voxels['coords'])} voxels → {args.out}")
+  colors = datasets.palette(meta["class_names"] or state.num_classes)
+  if args.out is not None:
+    voxels = jf.read_map(state)
+    io.export_ply(args.out, voxels, voxel_size=float(state.voxel_size), colors=colors,
+                  mode=args.mode)
+    print(f"{len(voxels['coords'])} voxels → {args.out}")
+  if args.mesh is not None:
+    if state.geometry is None:
+      raise ValueError(f"export --mesh: {args.map} has no geometry layer (maps written by "
+                       "`jaxfusion run` and `demo` have one)")
+    surface = jf.extract_mesh(state, classes=args.classes, min_weight=args.min_weight)
+    io.save_mesh(args.mesh, surface, color_by=args.color_by, colors=colors,
+                 num_classes=state.num_classes)
+    print(f"mesh: {surface.num_vertices} vertices, {surface.num_faces} triangles "
+          f"(coloured by {args.color_by}) → {args.mesh}")
   return 0
 
 
@@ -244,6 +263,7 @@ def add_parser(subparsers) -> None:
   run.add_argument("--width", type=int, default=160, help="image columns (embedded sequences)")
   run.add_argument("--capacity", type=int, default=2**16,
                    help="initial map capacity (a power of two); the map grows as needed")
+  flags.add_geometry(run)
   flags.add_layout_seeds(run, default=[0], help_suffix=" (one; default 0)")
   flags.add_mc_seed(run, aliases=("--seed",))
   run.add_argument("--out", default="outputs/run")
@@ -254,10 +274,19 @@ def add_parser(subparsers) -> None:
   ev.add_argument("--gt", required=True, help="GT voxel labels .npz (coords, labels)")
   ev.set_defaults(func=eval_command)
 
-  ex = subparsers.add_parser("export", help="export a saved map as a class-coloured PLY")
+  ex = subparsers.add_parser("export", help="export a saved map: voxels as a class-coloured "
+                                            "PLY, its surface as a mesh")
   ex.add_argument("--map", required=True)
-  ex.add_argument("--out", required=True)
+  ex.add_argument("--out", default=None, help="voxels as a PLY (cubes or points)")
   ex.add_argument("--mode", choices=("cubes", "points"), default="cubes")
+  ex.add_argument("--mesh", default=None, metavar="FILE",
+                  help="the geometry layer's mesh: .ply, .obj or .glb")
+  ex.add_argument("--color-by", choices=io.MESH_COLORINGS, default="class",
+                  help="mesh vertex colours: class (the map's palette), confidence or entropy")
+  ex.add_argument("--classes", type=int, nargs="+", default=None,
+                  help="mesh only these classes (indices)")
+  ex.add_argument("--min-weight", type=float, default=jf.mesh.DEFAULT_MIN_WEIGHT,
+                  help="skip cubes with a corner of lower TSDF weight")
   ex.set_defaults(func=export_command)
 
 
