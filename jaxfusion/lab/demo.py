@@ -27,15 +27,20 @@ from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
 from jaxfusion.lab import reports
 
+# The demo's geometry layer: 5 cm voxels, τ = 4 voxels, constant weights (the table grows).
+GEOMETRY = jf.tsdf.TSDFConfig()
 
-def fuse_with_rule(sequence, predictions: dict, rule, config: config_lib.RunConfig):
+
+def fuse_with_rule(sequence, predictions: dict, rule, config: config_lib.RunConfig, *,
+                   geometry=None):
   """Fuses a whole sequence with one rule; returns the final MapState.
 
   The robust rules read the MC moments (`mean`, `var`), the baselines the dropout-off pass
   (`det`). The map starts at `config.capacity` and grows rather than drop a voxel (`Mapper`).
+  `geometry` (a `tsdf.TSDFConfig`) fuses a geometry layer in the same calls.
   """
   mapper = Mapper(rule, num_classes=predictions["mean"].shape[-1],
-                  voxel_size=config.voxel_size, capacity=config.capacity)
+                  voxel_size=config.voxel_size, capacity=config.capacity, geometry=geometry)
   robust = rule.name in config_lib.ROBUST_RULES
   frames = jf.Frame(np.asarray(sequence.depth, np.float32),
                     np.asarray(sequence.T_world_cam, np.float32),
@@ -101,8 +106,13 @@ def run_demo(config: config_lib.RunConfig, out_dir: str, *, cache_dir: Optional[
     confusions.setdefault(env, {display[n]: np.zeros((k, k), np.int64) for n in rules})
     views = {"Ground truth": gt}
     first = traj == config.trajectories[0]
+    geometry = None   # the sequence's geometry layer: fused once, with the first rule
+    meshes = {}
     for name, rule in rules.items():
-      state = fuse_with_rule(seq, preds, rule, config)
+      state = fuse_with_rule(seq, preds, rule, config,
+                             geometry=GEOMETRY if geometry is None else None)
+      geometry = state.geometry if geometry is None else geometry
+      state = state.replace(geometry=geometry)
       voxels = jf.read_map(state)
       ev = metrics.evaluate_map(voxels, gt, k)
       confusions[env][display[name]] += ev["confusion"]
@@ -116,8 +126,11 @@ def run_demo(config: config_lib.RunConfig, out_dir: str, *, cache_dir: Optional[
                   poses=seq.T_world_cam, camera=seq.camera, image_size=seq.image_size)
       io.export_ply(stem + ".ply", voxels, voxel_size=config.voxel_size, colors=colors,
                     mode="cubes" if first else "points")
-      files += [stem + ".npz", stem + ".ply"]
+      surface = jf.extract_mesh(state)
+      io.save_mesh(stem + "_mesh.ply", surface, colors=colors, num_classes=k)
+      files += [stem + ".npz", stem + ".ply", stem + "_mesh.ply"]
       views[display[name]] = voxels
+      meshes[display[name]] = surface
     gt_npz = os.path.join(out_dir, "maps", f"{seq.name}_gt.npz")   # for `jaxfusion view`
     io.atomic_write(gt_npz, lambda tmp, gt=gt: _save_npz(tmp, gt))
     files.append(gt_npz)
@@ -129,6 +142,9 @@ def run_demo(config: config_lib.RunConfig, out_dir: str, *, cache_dir: Optional[
       shown = {t: v for t, v in views.items() if t in ("Ground truth", "Bayesian", "D+R")}
       path = os.path.join(out_dir, f"maps_{seq.name}.png")
       figures.map_views(path, shown, voxel_size=config.voxel_size, colors=colors)
+      files.append(path)
+      path = os.path.join(out_dir, f"mesh_{seq.name}.png")
+      figures.mesh_views(path, _mesh_panels(meshes, gt, colors, config.voxel_size))
       files.append(path)
 
   if len(config.envs) == 1:   # the per-environment table would repeat "all"
@@ -144,6 +160,25 @@ def run_demo(config: config_lib.RunConfig, out_dir: str, *, cache_dir: Optional[
   figures.outlier_figure(path)
   files.append(path)
   return {"table": table, "results": results, "files": files, "unmatched": unmatched}
+
+
+def _mesh_panels(meshes: dict, gt: dict, colors: np.ndarray, voxel_size: float) -> dict:
+  """The demo's mesh figure: the geometry layer's mesh coloured by the GT label of each face's
+  semantic voxel (grey where GT has none), then by Bayes's and D+R's face labels."""
+  grey = np.array(io.UNLABELLED_RGB, np.uint8)
+  palette = lambda labels: np.where((labels >= 0)[:, None], colors[np.maximum(labels, 0)], grey)
+  panels = {}
+  some = next(iter(meshes.values()))
+  centroids = some.vertices[some.faces].mean(axis=1) if some.num_faces else np.zeros((0, 3))
+  voxel = np.floor(centroids / voxel_size).astype(np.int64)
+  lookup = {tuple(c): int(l) for c, l in zip(np.asarray(gt["coords"]), np.asarray(gt["labels"]))}
+  gt_labels = np.array([lookup.get(tuple(c), -1) for c in voxel], np.int64)
+  panels["Ground truth"] = (some.vertices, some.faces, palette(gt_labels))
+  for title in ("Bayesian", "D+R"):
+    if title in meshes:
+      m = meshes[title]
+      panels[title] = (m.vertices, m.faces, palette(m.face_labels))
+  return panels
 
 
 def _save_npz(path, arrays):

@@ -155,6 +155,47 @@ def map_views(path: str, maps: dict, *, voxel_size: float, colors: np.ndarray,
   _save(fig, path)
 
 
+def mesh_views(path: str, meshes: dict, *, ceiling_cut: float = 0.35) -> None:
+  """Renders meshes side by side from the same oblique viewpoint as `map_views`, each face
+  in its class colour with Lambert shading (painter's algorithm, far faces first).
+
+  Args:
+    path: PNG destination.
+    meshes: title -> `(vertices (P, 3), faces (F, 3), face_rgb (F, 3) uint8)`.
+    ceiling_cut: faces whose centroid is higher than (top − ceiling_cut) metres are hidden.
+  """
+  plt = _pyplot()
+  from matplotlib.collections import PolyCollection
+  tops = [np.asarray(v)[:, 2].max() for v, f, _ in meshes.values() if len(f)]
+  z_max = (max(tops) if tops else 0.0) - ceiling_cut
+  fig, axes = plt.subplots(1, len(meshes), figsize=(5 * len(meshes), 4.6), squeeze=False)
+  view = np.array([1.0, 1.0, -1.2])
+  view /= np.linalg.norm(view)
+  right = np.array([1.0, -1.0, 0.0]) / np.sqrt(2)
+  up = np.cross(right, view)
+  light = -view + np.array([0.0, 0.0, 0.6])
+  light /= np.linalg.norm(light)
+  for ax, (title, (vertices, faces, rgb)) in zip(axes[0], meshes.items()):
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    tri = vertices[faces]                                   # (F, 3, 3)
+    keep = tri.mean(axis=1)[:, 2] <= z_max
+    tri, rgb = tri[keep], np.asarray(rgb, np.float64)[keep] / 255.0
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    shade = 0.35 + 0.65 * np.abs(normal @ light)
+    order = np.argsort(tri.mean(axis=1) @ view)[::-1]       # far first
+    xy = np.stack([tri @ right, tri @ up], axis=-1)[order]
+    ax.add_collection(PolyCollection(xy, facecolors=rgb[order] * shade[order, None],
+                                     edgecolors="none", antialiased=False))
+    if len(xy):
+      ax.set_xlim(xy[..., 0].min(), xy[..., 0].max())
+      ax.set_ylim(xy[..., 1].min(), xy[..., 1].max())
+    ax.set_title(title)
+    ax.set_aspect("equal")
+    ax.axis("off")
+  _save(fig, path)
+
+
 def bands_vs_shift(path: str, shifts, panels: dict, *, ylabel: str = "%",
                    zero_line: bool = False, scale: float = 100.0) -> None:
   """Curves over the domain shift with shaded interval bands, one panel per quantity.
