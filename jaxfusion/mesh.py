@@ -207,7 +207,7 @@ def _emit(state: tsdf_lib.TSDFState, cases, flags, neighbours, *, max_vertices: 
     owner_voxel = index_of[v_index, corner]
     vid = vertex_id[jnp.minimum(owner_block, capacity - 1), owner_voxel, edge_axis[edge]]
     tri_ok = (tri_edges[..., 0] >= 0) & ok[..., None]                     # (G, V, 5)
-    row = face_start[read][..., None] + jnp.arange(5)
+    row = face_start[read][..., None] + jnp.arange(5)[None, None, :]
     write = jnp.where(tri_ok, row, max_faces)
     faces = faces.at[write.reshape(-1)].set(vid.reshape(-1, 3), mode="drop")
     return c + 1, verts, faces

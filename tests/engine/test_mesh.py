@@ -14,6 +14,14 @@ from jaxfusion import mesh as mesh_lib
 from jaxfusion import tsdf
 from tests import mc_reference
 
+
+@pytest.fixture(autouse=True)
+def strict_rank_promotion():
+  """The engine broadcasts explicitly: users may run with jax_numpy_rank_promotion='raise'."""
+  with jax.numpy_rank_promotion("raise"):
+    yield
+
+
 VOXEL = 0.05
 
 

@@ -12,6 +12,14 @@ import jaxfusion as jf
 from jaxfusion import tsdf
 from tests.tsdf_reference import ReferenceTSDF
 
+
+@pytest.fixture(autouse=True)
+def strict_rank_promotion():
+  """The engine broadcasts explicitly: users may run with jax_numpy_rank_promotion='raise'."""
+  with jax.numpy_rank_promotion("raise"):
+    yield
+
+
 CAM = jf.Camera(fx=40.0, fy=40.0, cx=23.5, cy=17.5)     # 48 × 36 pixels
 
 
