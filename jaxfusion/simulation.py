@@ -1,19 +1,32 @@
-"""A simulated Bayesian front end whose errors depend on the view.
+"""Simulated Bayesian front ends: MC-dropout-like predictions drawn from the ground truth.
 
-A sweep of fusion rules over its parameters is the application's `jaxfusion simulate-sweep`
-(`jaxfusion.lab.simulate`).
+Two stand-ins for a segmentation network, for calibration, tests and sweeps when no trained
+network is at hand. Both give what `mc_moments` of an MC-dropout net would give (`Frame.probs`,
+`Frame.var`), and both are described in the same words: a pixel *favours* the argmax of its MC
+mean; it is *wrong* when that class is not its GT label y (labels outside [0, K) are
+unlabelled and never wrong); its *confidence* is the mean probability of the favoured class; and
+α = −log var of the favoured class is how strongly the robust rules D and D+R trust it. They
+differ in how the errors are drawn:
 
-`tune.simulate_predictions` draws every pixel's error independently, so the errors of a voxel's
-many pixels average out and every rule looks the same. Real segmentation nets err in spatially
-coherent regions (a whole object, a patch of a surface) and, over a trajectory, partly in the
-same regions in every view (the domain gap) and partly in regions that change from view to view
-(distance, objects cut at the border, exposure, motion blur, highlights). This module simulates
-such a net from the ground truth, with four knobs that decide what a fusion rule can do: how
-often a region is wrong, how confident the errors are, how well the variance flags them, and how
-correlated the errors of one region are across views.
+- **Independent errors**, `simulate_predictions`: every pixel's error is drawn on its own. A
+  pixel favours y with probability `accuracy`, else the confusion partner (y + 1) mod K; with
+  probability `outlier_rate` it is instead a confident outlier, a near one-hot vote for a
+  uniformly drawn wrong class. The moments are those of M softmax samples whose spread is small
+  on right pixels and larger on wrong ones (largest on outliers), so the variance flags the
+  errors. Since the errors of a voxel's many pixels are independent, they average out and every
+  rule looks the same: this is the tuning commands' `--front-end simulated`.
+- **View-dependent errors**, `simulate_view_predictions` (one frame) and `simulate_sequence`:
+  real segmentation nets err in spatially coherent regions (a whole object, a patch of a
+  surface) and, over a trajectory, partly in the same regions in every view (the domain gap)
+  and partly in regions that change from view to view (distance, objects cut at the border,
+  exposure, motion blur, highlights). This front end simulates such a net, with four knobs
+  (fields of `ErrorModel`) that decide what a fusion rule can do: how often a region is wrong, how
+  confident the errors are, how well the variance flags them, and how correlated the errors of
+  one region are across views. A sweep of fusion rules over them is the application's
+  `jaxfusion simulate-sweep` (`jaxfusion.lab.simulate`).
 
-Generative model (one sequence and its PRNG key; everything below is a deterministic function of
-the key, the frame index t and the frame's GT):
+Generative model of the view-dependent errors (one sequence and its PRNG key; everything below
+is a deterministic function of the key, the frame index t and the frame's GT):
 
 1. **Regions.** A pixel with GT label y ∈ [0, K) belongs to up to two *regions*, both fixed in
    the world so that "the same region" is defined across views:
@@ -51,12 +64,12 @@ the key, the frame index t and the frame's GT):
    `error_model` refuses settings whose *mean* α* on wrong pixels breaks that bound, and
    the sweep reports the realised separation. Every `var_i ∈ [0, 0.25]`.
 
-The outputs are what `mc_moments` of an MC-dropout net would give (`Frame.probs`, `Frame.var`),
-plus the error mask. All parameters are float32 pytree leaves (`ErrorModel`), so a grid of
+The outputs are the MC mean and variance plus the error mask and the favoured class
+(`SimulatedView`). All parameters are float32 pytree leaves (`ErrorModel`), so a grid of
 models is one `jax.vmap` and changing them never recompiles. In a sweep every cell uses the same
 key: the cells share their random numbers, and differences between cells are not sampling noise.
 
-Shape legend: T frames, H×W pixels, K classes.
+Shape legend: T frames, H×W pixels, K classes, M MC samples.
 """
 
 import functools
@@ -197,7 +210,55 @@ def error_model(*, error_rate=0.2, error_confidence=0.8, confidence=0.8,
   return model
 
 
-# --- the simulator (one frame; vmap over frames and models) ------------------------------------
+# --- independent errors: a simulated MC-dropout network -------------------------------------
+@functools.partial(jax.jit, static_argnames=("num_classes", "num_samples"))
+def simulate_predictions(key: jax.Array, labels: jax.Array, *, num_classes: int,
+                         num_samples: int = 8, accuracy: float = 0.75,
+                         outlier_rate: float = 0.08, strength: float = 3.0
+                         ) -> tuple[jax.Array, jax.Array]:
+  """The front end with independent errors: MC-dropout-like predictions from GT labels.
+
+  Each pixel's error is drawn on its own. Its logits favour its true class (`strength`) with
+  probability `accuracy`, else a fixed confusion partner (class `(y + 1) mod K`); with
+  probability `outlier_rate` a pixel is a confident outlier — a near one-hot vote for a random
+  wrong class whose M samples disagree strongly (high epistemic variance), the case the paper's
+  robust rules address. Labels outside [0, K) get uniform-ish logits.
+
+  Args:
+    key: PRNG key.
+    labels: `(..., H, W) int` GT labels.
+    num_classes: K.
+    num_samples: M dropout-like samples.
+    accuracy: probability that a (non-outlier) pixel favours its true class.
+    outlier_rate: fraction of confident outliers.
+    strength: logit margin of the favoured class.
+
+  Returns:
+    `(probs, var)`, both `(..., H, W, K) float32`: the MC mean and variance (`mc_moments`).
+  """
+  labels = jnp.asarray(labels, jnp.int32)
+  k_conf, k_out, k_cls, k_base, k_samp, k_amp = jax.random.split(key, 6)
+  valid = (labels >= 0) & (labels < num_classes)
+  y = jnp.where(valid, labels, 0)
+  confused = jax.random.uniform(k_conf, labels.shape) > accuracy
+  favoured = jnp.where(confused, (y + 1) % num_classes, y)
+  outlier = jax.random.uniform(k_out, labels.shape) < outlier_rate
+  wrong = (y + 1 + jax.random.randint(k_cls, labels.shape, 0, num_classes - 1)) % num_classes
+  favoured = jnp.where(outlier, wrong, favoured)
+  margin = jnp.where(outlier, 3.0 * strength, strength) * valid
+  logits = margin[..., None] * jax.nn.one_hot(favoured, num_classes)
+  logits = logits + 0.5 * jax.random.normal(k_base, logits.shape)
+  # Sample spread: low for honest pixels, high for confused and outlier pixels.
+  spread = jnp.where(outlier, 4.0, jnp.where(confused, 1.5, 0.4))[..., None]
+  spread = spread * jax.random.uniform(k_amp, labels.shape + (1,), minval=0.5, maxval=1.5)
+  noise = jax.random.normal(k_samp, (num_samples,) + logits.shape)
+  samples = jax.nn.softmax(logits[None] + spread[None] * noise, axis=-1)
+  mean = jnp.mean(samples, axis=0)
+  var = jnp.mean(jnp.square(samples - mean[None]), axis=0)
+  return mean, var
+
+
+# --- view-dependent errors: the simulator (one frame; vmap over frames and models) ------------
 _GOLDEN = np.uint32(0x9E3779B9)
 # Seed words drawn from the key (one Threefry call per sequence): 3 per latent stream.
 _STREAMS = {"object_world": 0, "object_view": 3, "patch_world": 6, "patch_view": 9,

@@ -11,9 +11,8 @@
   `β = sigmoid(u)` (always in (0, 1), so the rule constructor's [0, 1] check never fires),
   `ε = exp(v)` (the gradient in v stays in [−1, 0] per unit of α even at zero variance), and
   `α₀ = softplus(w)` (non-negative).
-- `simulate_predictions`: a simulated noisy Bayesian network (MC samples from GT labels, with
-  confusions and confident-looking outliers of high epistemic variance), for calibration when
-  no trained network is at hand.
+- `simulate_predictions`: kept here as an alias; the simulated network (independent per-pixel
+  errors) lives in `jaxfusion.simulation`, beside the one with view-dependent errors.
 - `evaluate_rules`: scores a list of rules (any mix of kinds) on one batch of sequences.
 
 The commands and protocols built on these (`jaxfusion sweep`, `tune-beta`, `tune-compare`,
@@ -39,6 +38,7 @@ from jaxfusion import metrics
 from jaxfusion import numerics
 from jaxfusion import readout
 from jaxfusion import rules as rules_lib
+from jaxfusion import simulation
 from jaxfusion import state as state_lib
 from jaxfusion.rules import base as rules_base
 
@@ -475,52 +475,10 @@ def tune_hparams(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_
       grads={k: np.asarray(v) for k, v in grads.items()}, objective=objective)
 
 
-# --- a simulated Bayesian network --------------------------------------------------------------
-@functools.partial(jax.jit, static_argnames=("num_classes", "num_samples"))
-def simulate_predictions(key: jax.Array, labels: jax.Array, *, num_classes: int,
-                         num_samples: int = 8, accuracy: float = 0.75,
-                         outlier_rate: float = 0.08, strength: float = 3.0
-                         ) -> tuple[jax.Array, jax.Array]:
-  """MC-dropout-like predictions from GT labels: a stand-in network for calibration and tests.
-
-  Each pixel's logits favour its true class (`strength`) with probability `accuracy`, else a
-  fixed confusion partner (class `(y + 1) mod K`); with probability `outlier_rate` a pixel is a
-  confident outlier — a near one-hot vote for a random wrong class whose M samples disagree
-  strongly (high epistemic variance), the case the paper's robust rules address. Labels
-  outside [0, K) get uniform-ish logits.
-
-  Args:
-    key: PRNG key.
-    labels: `(..., H, W) int` GT labels.
-    num_classes: K.
-    num_samples: M dropout-like samples.
-    accuracy: probability that a (non-outlier) pixel favours its true class.
-    outlier_rate: fraction of confident outliers.
-    strength: logit margin of the favoured class.
-
-  Returns:
-    `(probs, var)`, both `(..., H, W, K) float32`: the MC mean and variance (`mc_moments`).
-  """
-  labels = jnp.asarray(labels, jnp.int32)
-  k_conf, k_out, k_cls, k_base, k_samp, k_amp = jax.random.split(key, 6)
-  valid = (labels >= 0) & (labels < num_classes)
-  y = jnp.where(valid, labels, 0)
-  confused = jax.random.uniform(k_conf, labels.shape) > accuracy
-  favoured = jnp.where(confused, (y + 1) % num_classes, y)
-  outlier = jax.random.uniform(k_out, labels.shape) < outlier_rate
-  wrong = (y + 1 + jax.random.randint(k_cls, labels.shape, 0, num_classes - 1)) % num_classes
-  favoured = jnp.where(outlier, wrong, favoured)
-  margin = jnp.where(outlier, 3.0 * strength, strength) * valid
-  logits = margin[..., None] * jax.nn.one_hot(favoured, num_classes)
-  logits = logits + 0.5 * jax.random.normal(k_base, logits.shape)
-  # Sample spread: low for honest pixels, high for confused and outlier pixels.
-  spread = jnp.where(outlier, 4.0, jnp.where(confused, 1.5, 0.4))[..., None]
-  spread = spread * jax.random.uniform(k_amp, labels.shape + (1,), minval=0.5, maxval=1.5)
-  noise = jax.random.normal(k_samp, (num_samples,) + logits.shape)
-  samples = jax.nn.softmax(logits[None] + spread[None] * noise, axis=-1)
-  mean = jnp.mean(samples, axis=0)
-  var = jnp.mean(jnp.square(samples - mean[None]), axis=0)
-  return mean, var
+# --- the simulated network's old home ---------------------------------------------------------
+# `simulate_predictions` lives with the other simulated front end in `jaxfusion.simulation`; this
+# name is kept so that existing callers of `tune.simulate_predictions` keep working.
+simulate_predictions = simulation.simulate_predictions
 
 
 # --- scoring lists of rules ----------------------------------------------------------------------

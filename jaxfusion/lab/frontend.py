@@ -8,7 +8,7 @@ A front end is any object with
 
 `FrontEnd` is the shipped MC-dropout network (or any checkpoint). Two other sources give the
 same arrays without a network: `simulated_predictions` (a simulated noisy Bayesian net drawn
-from the GT labels, `tune.simulate_predictions`) and `precomputed_predictions` (one `.npz` per
+from the GT labels, `simulation.simulate_predictions`) and `precomputed_predictions` (one `.npz` per
 frame, `sources.precomputed_source`). `sequence_predictions` picks one of the three for a
 command.
 
@@ -30,8 +30,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxfusion import io
+from jaxfusion import simulation
 from jaxfusion import sources
-from jaxfusion import tune
 
 CACHE_VERSION = 2
 # The front ends a command can name with --front-end.
@@ -230,8 +230,8 @@ def simulated_predictions(labels: np.ndarray, *, env: str, trajectory: int, num_
     dict with `mean` and `var`, each `(T, H, W, K) float32`.
   """
   key = jax.random.fold_in(jax.random.PRNGKey(mc_seed), 97 * trajectory + len(env))
-  mean, var = tune.simulate_predictions(key, labels, num_classes=num_classes,
-                                        num_samples=num_samples)
+  mean, var = simulation.simulate_predictions(key, labels, num_classes=num_classes,
+                                              num_samples=num_samples)
   return {"mean": np.asarray(mean, np.float32), "var": np.asarray(var, np.float32)}
 
 

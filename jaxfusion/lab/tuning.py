@@ -365,7 +365,8 @@ def add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust r
                            "observation")
   parser.add_argument("--front-end", choices=FRONT_ENDS, default="simulated",
                       help="'shipped': the packaged MC-dropout network, run once per sequence "
-                           "and cached (--cache); 'simulated': simulate_predictions")
+                           "and cached (--cache); 'simulated': independent per-pixel errors, "
+                           "simulation.simulate_predictions")
   parser.add_argument("--checkpoint", default=None,
                       help="weights for --front-end shipped (default: the packaged ones)")
   flags.add_cache(parser, default=DEFAULT_CACHE_DIR, aliases=("--cache-dir",))

@@ -1,7 +1,8 @@
 """The simulated view-dependent front end: its error rate, cross-view correlation and variance
 separation against the generative model's closed forms (statistical tolerances), valid outputs,
 the deterministic map from errors to moments against NumPy, validation, the rule equivalences the
-sweep relies on, and a tiny sweep and its command."""
+sweep relies on, and a tiny sweep and its command. The front end with independent errors lives
+in the same module (its old name in `tune` is the same function)."""
 
 import argparse
 import functools
@@ -19,6 +20,7 @@ from scipy import stats
 
 import jaxfusion as jf
 from jaxfusion import simulation as sim
+from jaxfusion import tune
 from jaxfusion.lab import simulate
 from tests import engine_helpers as h
 
@@ -299,6 +301,10 @@ def test_validation_of_inputs(scene):
                                   model=sim.error_model(), error_rate=0.2)
   with pytest.raises(ValueError, match="frame_index must be a scalar"):
     sim.simulate_view_predictions(key, labels, inst, [0, 1], num_classes=K, regions="objects")
+
+
+def test_both_front_ends_live_here_and_tune_keeps_the_old_name():
+  assert tune.simulate_predictions is sim.simulate_predictions
 
 
 def test_auroc_against_brute_force():

@@ -13,6 +13,7 @@ import pytest
 import jaxfusion as jf
 from jaxfusion import batch
 from jaxfusion import metrics
+from jaxfusion import simulation
 from jaxfusion import tune
 from jaxfusion.lab import tuning
 from tests import engine_helpers as h
@@ -48,8 +49,8 @@ def scene(seed=0, num_frames=4, height=8, width=10):
     poses.append(T)
   labels = np.stack(labels)
   # An RBG key: XLA on CPU compiles threefry's random ops in seconds each, rbg in a fraction.
-  probs, var = tune.simulate_predictions(jax.random.key(seed, impl="rbg"), labels, num_classes=K,
-                                         num_samples=4, outlier_rate=0.15)
+  probs, var = simulation.simulate_predictions(jax.random.key(seed, impl="rbg"), labels,
+                                               num_classes=K, num_samples=4, outlier_rate=0.15)
   frames = jf.Frame(np.stack(depths), np.stack(poses), np.asarray(probs), np.asarray(var))
   coords = np.unique(np.concatenate(keys), axis=0)
   return frames, coords, label_of(coords).astype(np.int32)
