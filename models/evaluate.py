@@ -31,6 +31,7 @@ from jaxfusion import metrics
 from jaxfusion import sources
 
 from . import checkpoint, sampling
+from . import data as data_lib
 
 
 def confusion_matrix(pred: np.ndarray, labels: np.ndarray, num_classes: int) -> np.ndarray:
@@ -66,8 +67,7 @@ def load_with_training_size(path, height=None, width=None):
   Returns:
     `(LoadedModel, height, width)`.
   """
-  from . import train  # The data helpers live with the training command.
-  model = checkpoint.load(path, class_names=train.dataset_class_names())
+  model = checkpoint.load(path, class_names=data_lib.dataset_class_names())
   data = model.metadata.get("record", {}).get("data", {})
   return model, height or data.get("height", 96), width or data.get("width", 128)
 
@@ -330,7 +330,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                       "(its default) or with the plain sensor model (SensingConfig.off())")
   args = p.parse_args(argv)
 
-  from . import train  # The data helpers live with the training command.
   try:
     model, height, width = load_with_training_size(args.checkpoint, args.height, args.width)
   except (ValueError, FileNotFoundError) as e:   # a CheckpointError is a ValueError
@@ -342,9 +341,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
   splits = {"train_heldout": ("train", seed + 10_000, 1.0),
             "test_shifted": ("test", seed + 20_000, args.shift)}
   for i, (name, (domain, split_seed, shift)) in enumerate(splits.items()):
-    x, y = train.load_domain(domain, args.num_images, height=height, width=width,
-                             seed=split_seed, shift=shift, cache_dir=args.cache,
-                             sensing=args.sensing == "on")
+    x, y = data_lib.load_domain(domain, args.num_images, height=height, width=width,
+                                seed=split_seed, shift=shift, cache_dir=args.cache,
+                                sensing=args.sensing == "on")
     res = evaluate_arrays(model.graphdef, model.params, x, y, key=jax.random.fold_in(key, i),
                           num_samples=args.num_samples, num_classes=model.config.num_classes)
     results[name] = res

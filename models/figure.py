@@ -20,7 +20,8 @@ import matplotlib.patches  # noqa: E402  (backend must be chosen first)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from . import checkpoint, evaluate, train  # noqa: E402
+from . import checkpoint, evaluate  # noqa: E402
+from . import data as data_lib  # noqa: E402
 
 
 def colorize(labels: np.ndarray, colors: np.ndarray) -> np.ndarray:
@@ -99,8 +100,8 @@ def main(argv: list[str] | None = None) -> pathlib.Path:
   from jaxfusion.datasets import classes
   model, height, width = evaluate.load_with_training_size(args.checkpoint, args.height,
                                                           args.width)
-  rgb, labels = train.load_domain(args.domain, args.num_views, height=height, width=width,
-                                  seed=args.seed, cache_dir=args.cache)
+  rgb, labels = data_lib.load_domain(args.domain, args.num_views, height=height, width=width,
+                                     seed=args.seed, cache_dir=args.cache)
   preds = evaluate.predict_arrays(model.graphdef, model.params, rgb,
                                   key=jax.random.key(args.seed), num_samples=args.num_samples)
   out = render_figure(

@@ -1,5 +1,6 @@
 """The layers: library (`jaxfusion`) ← networks (`jaxfusion_models`) ← application
-(`jaxfusion.lab`). Dependencies point one way, and `import jaxfusion` stays light."""
+(`jaxfusion.lab`). Dependencies point one way, the networks' modules import one another without
+a circle, and `import jaxfusion` stays light."""
 
 import ast
 import pathlib
@@ -61,6 +62,47 @@ def test_library_imports_neither_the_application_nor_the_networks(path):
 def test_networks_import_the_library_only(path):
   imports = _imports(path)
   assert not _names("jaxfusion.lab", imports), _names("jaxfusion.lab", imports)
+
+
+def _cycle(graph: dict) -> list:
+  """One cycle of a directed graph `{node: set of nodes}` as a path `[a, …, a]`, or []."""
+  done, path = set(), []
+
+  def visit(node):
+    if node in path:
+      return path[path.index(node):] + [node]
+    if node in done:
+      return []
+    path.append(node)
+    for succ in sorted(graph.get(node, ())):
+      found = visit(succ)
+      if found:
+        return found
+    path.pop()
+    done.add(node)
+    return []
+
+  for node in sorted(graph):
+    found = visit(node)
+    if found:
+      return found
+  return []
+
+
+def test_the_networks_modules_import_one_another_without_a_circle():
+  # Each module of `models/` does one thing, and a circle would tie two of them together (train
+  # and evaluate once imported each other for the data helpers that now live in `data`). The
+  # package's `__init__` re-exports the modules and is left out.
+  modules = {p.stem: p for p in MODELS.glob("*.py") if p.stem != "__init__"}
+  graph = {name: {other for other in modules if f"models.{other}" in _imports(path)} - {name}
+           for name, path in modules.items()}
+  assert graph["train"] and "evaluate" in graph["train"]   # the scan sees relative imports
+  assert _cycle(graph) == [], " → ".join(_cycle(graph))
+
+
+def test_the_cycle_finder_finds_a_circle():
+  assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+  assert _cycle({"a": {"b"}, "b": {"c"}, "c": set()}) == []
 
 
 def test_the_scan_sees_function_level_and_relative_imports(tmp_path):

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from models import checkpoint, net, train
+from models import checkpoint, data, net, train
 
 K = 3
 
@@ -412,7 +412,7 @@ def test_train_and_evaluate_writes_a_checkpoint_whose_record_replays_its_config(
     labels = rng.integers(0, 7, (num_images, height, width)).astype(np.int32)
     return (labels[..., None] * 30).repeat(3, -1).astype(np.uint8), labels
 
-  monkeypatch.setattr(train, "load_domain", load_domain)
+  monkeypatch.setattr(data, "load_domain", load_domain)
   # The evaluation has tests of its own; here only its place in the record matters.
   monkeypatch.setattr(train.evaluate, "evaluate_arrays",
                       lambda *a, **k: {"summary": {"mc_miou": 0.5}})
@@ -423,7 +423,7 @@ def test_train_and_evaluate_writes_a_checkpoint_whose_record_replays_its_config(
           if k != "num_classes"}})
   out = tmp_path / "run" / "segnet.msgpack"
   record = train.train_and_evaluate(config, out, save_every=1, progress=False)
-  loaded = checkpoint.load(out, class_names=train.dataset_class_names())
+  loaded = checkpoint.load(out, class_names=data.dataset_class_names())
   assert loaded.config == config.model and loaded.metadata["record"] == record
   assert record["command"] == " ".join(["python -m models.train", *train.to_argv(config)])
   assert record["data"]["heldout"] == {"domain": "train", "num_images": 2, "seed": 10_003}
