@@ -4,7 +4,9 @@ The pipeline: camera geometry → spatial hash → map state → fusion rules �
 readout → metrics; beside the semantics, a geometry layer (`tsdf`, a TSDF fused in the same
 call) and its meshes (`mesh`, marching cubes). Batches, sweeps and tuning build on it
 (`batch`, `tune`); the synthetic world and real-data readers live in `jaxfusion.datasets`, the
-simulated front end in `jaxfusion.simulation`, map files in `jaxfusion.io`. The equations are in docs/equations.md.
+simulated front ends (independent or view-dependent errors) in `jaxfusion.simulation`, the
+analyses of a front end's pixel observations of GT voxels in `jaxfusion.observations`, map files
+in `jaxfusion.io`. The equations are in docs/equations.md.
 
 This package is the library. The application (commands, studies, figures, the viewer) is
 `jaxfusion.lab`, which this package never imports.

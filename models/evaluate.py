@@ -28,6 +28,7 @@ import numpy as np
 from flax import nnx
 
 from jaxfusion import metrics
+from jaxfusion import observations
 from jaxfusion import sources
 
 from . import checkpoint, sampling
@@ -143,7 +144,7 @@ def alpha_report(mean: np.ndarray, var: np.ndarray, labels: np.ndarray, *,
   """Quartiles of the Dirichlet weight of the predicted class on right and wrong pixels.
 
   `α = −log(clip(var_ŷ, 0, 0.25) + ε)` with `ŷ = argmax mean`, exactly the concentration the
-  robust rules D and D+R give an observation (`jaxfusion.rules.robust.concentration`).
+  robust rules D and D+R give an observation (`jaxfusion.observations.alpha_of_prediction`).
 
   Args:
     mean: `(..., K)` MC-mean probabilities.
@@ -157,8 +158,7 @@ def alpha_report(mean: np.ndarray, var: np.ndarray, labels: np.ndarray, *,
   mean, var, labels = np.asarray(mean), np.asarray(var, np.float64), np.asarray(labels)
   valid = (labels >= 0) & (labels < mean.shape[-1])
   pred = mean.argmax(-1)[valid]
-  var_pred = np.take_along_axis(var[valid], pred[:, None], axis=-1)[:, 0]
-  alpha = -np.log(np.clip(var_pred, 0.0, 0.25) + eps)
+  alpha = observations.alpha_of_prediction(var[valid], pred, eps=eps)
   wrong = pred != labels[valid]
   out = {}
   for name, subset in (("right", alpha[~wrong]), ("wrong", alpha[wrong])):

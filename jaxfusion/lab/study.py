@@ -8,7 +8,8 @@ on disk (`frontend.cached_predictions`, keyed by the model's digest, shift, layo
 resolution, frames, M and a digest of the rendered images). Then every sequence is fused with
 all rules and with the oracle, and scored against GT voxel labels as the demo does.
 
-Definitions (per shift; a voxel's GT label y is the majority of its GT pixel labels):
+Definitions (per shift; a voxel's GT label y is the majority of its GT pixel labels; the
+observations, headroom categories and α are computed by the library's `jaxfusion.observations`):
 
 * **Pixel observation**: a pixel with valid depth whose voxel (the engine's key) is a GT voxel;
   it *votes* for the argmax of the front end's MC-mean probabilities (what the robust rules
@@ -52,13 +53,10 @@ import os
 import time
 from typing import Optional
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
 import jaxfusion as jf
-from jaxfusion import camera as camera_lib
 from jaxfusion import learn
 from jaxfusion.lab import config as config_lib
 from jaxfusion.lab import flags
@@ -69,9 +67,13 @@ from jaxfusion import io
 from jaxfusion import metrics
 from jaxfusion.lab import stats
 from jaxfusion.datasets.classes import CLASS_NAMES
-from jaxfusion.rules.robust import DEFAULT_EPS
+# The analyses of pixel observations are general and live in the library
+# (`jaxfusion.observations`); their names stay importable from here.
+from jaxfusion.observations import HEADROOM
+from jaxfusion.observations import alpha_of_prediction
+from jaxfusion.observations import classify_voxels
+from jaxfusion.observations import pixel_observations
 
-HEADROOM = ("mostly right", "outvoted right", "never right")
 ORACLE = "oracle"
 # The learned rule (`rules.learned` with `StudyConfig.learned` parameters), a seventh row.
 LEARNED = "learned"
@@ -156,106 +158,6 @@ class StudyConfig:
 
 
 # --- per-sequence analysis ---------------------------------------------------------------------
-@jax.jit
-def _frame_keys(depth, T_world_cam, camera, voxel_size):
-  keys, in_range = jax.vmap(camera_lib.depth_to_voxel_keys, in_axes=(0, 0, None, None))(
-      depth, T_world_cam, camera, voxel_size)
-  d = depth.reshape(depth.shape[0], -1)
-  return keys, in_range & jnp.isfinite(d) & (d > 0)
-
-
-def _rows(coords) -> np.ndarray:
-  coords = np.ascontiguousarray(np.asarray(coords, np.int32).reshape(-1, 3))
-  return coords.view(np.dtype((np.void, 12))).reshape(-1)
-
-
-def pixel_observations(depth, T_world_cam, camera, probs, gt_coords, *,
-                       voxel_size: float) -> dict:
-  """Which GT voxel each pixel observes and which class it votes for.
-
-  Args:
-    depth: `(T, H, W)` float depth (invalid: 0, negative or non-finite).
-    T_world_cam: `(T, 4, 4)` camera-to-world poses.
-    camera: intrinsics.
-    probs: `(T, H, W, K)` probabilities whose argmax is the vote (pixels with non-finite
-      probabilities are not observations, as in the engine).
-    gt_coords: `(G, 3)` int GT voxel coordinates (unique).
-    voxel_size: voxel edge in metres (the maps' and the GT's).
-
-  Returns:
-    dict with `gt_index (T, N) int64` (the pixel's GT voxel, −1 for no observation) and
-    `pred (T, N) int64` (the argmax class).
-  """
-  depth = np.asarray(depth, np.float32)
-  probs = np.asarray(probs)
-  if depth.ndim != 3 or probs.shape[:3] != depth.shape:
-    raise ValueError(f"depth must be (T, H, W) and probs (T, H, W, K); got {depth.shape} and "
-                     f"{probs.shape}")
-  t = depth.shape[0]
-  keys, valid = _frame_keys(jnp.asarray(depth), jnp.asarray(T_world_cam, jnp.float32), camera,
-                            jnp.float32(voxel_size))
-  keys, valid = np.asarray(keys).reshape(-1, 3), np.array(valid).reshape(-1)
-  flat_probs = probs.reshape(-1, probs.shape[-1])
-  valid &= np.all(np.isfinite(flat_probs), axis=-1)
-  gt_rows = _rows(gt_coords)
-  pix_rows = _rows(keys[valid])
-  _, inverse = np.unique(np.concatenate([gt_rows, pix_rows]), return_inverse=True)
-  inverse = inverse.reshape(-1)
-  lookup = np.full(int(inverse.max()) + 1 if inverse.size else 0, -1, np.int64)
-  lookup[inverse[:len(gt_rows)]] = np.arange(len(gt_rows))
-  gt_index = np.full(valid.shape, -1, np.int64)
-  gt_index[valid] = lookup[inverse[len(gt_rows):]]
-  pred = np.argmax(flat_probs, axis=-1).astype(np.int64)
-  return {"gt_index": gt_index.reshape(t, -1), "pred": pred.reshape(t, -1)}
-
-
-def classify_voxels(gt_labels, gt_index, pred, num_classes: int) -> np.ndarray:
-  """The headroom category of every GT voxel from its pixel votes (see the module docstring).
-
-  Args:
-    gt_labels: `(G,)` int GT label y per voxel.
-    gt_index: `(P,)` int GT voxel of each pixel observation (entries < 0 are ignored).
-    pred: `(P,)` int class each observation votes for.
-    num_classes: K.
-
-  Returns:
-    `(G,) int8`: 0 mostly right, 1 outvoted right, 2 never right, −1 not observed.
-  """
-  y = np.asarray(gt_labels, np.int64).reshape(-1)
-  gt_index = np.asarray(gt_index, np.int64).reshape(-1)
-  pred = np.asarray(pred, np.int64).reshape(-1)
-  if gt_index.shape != pred.shape:
-    raise ValueError(f"gt_index and pred must have the same length; got {gt_index.shape} and "
-                     f"{pred.shape}")
-  g = len(y)
-  keep = gt_index >= 0
-  votes = np.bincount(gt_index[keep] * num_classes + pred[keep],
-                      minlength=g * num_classes).reshape(g, num_classes)
-  rows = np.arange(g)
-  right = votes[rows, y]
-  others = votes.copy()
-  others[rows, y] = -1
-  best_other = others.max(1) if num_classes > 1 else np.zeros(g, np.int64)
-  category = np.where(right > best_other, 0, 1)
-  category = np.where(right == 0, 2, category)
-  return np.where(votes.sum(1) == 0, -1, category).astype(np.int8)
-
-
-def alpha_of_prediction(var, pred) -> np.ndarray:
-  """`α = −log(clip(var_c, 0, 0.25) + ε)` of the predicted class c (the D rules' weight).
-
-  Args:
-    var: `(..., K)` per-class MC variance.
-    pred: `(...)` int predicted class.
-
-  Returns:
-    `(...) float64` α.
-  """
-  var = np.asarray(var)
-  v = np.take_along_axis(var, np.asarray(pred)[..., None], axis=-1)[..., 0]
-  return -np.log(np.clip(v.astype(np.float64), 0.0, 0.25) + DEFAULT_EPS)
-
-
 def _fuse(depth, T_world_cam, camera, probs, var, rule, config):
   state = jf.init_map(capacity=config.run.capacity, num_classes=probs.shape[-1],
                       voxel_size=config.run.voxel_size, rule=rule)

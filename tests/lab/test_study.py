@@ -1,20 +1,21 @@
-"""The study: headroom classification, pixel→voxel observations, the oracle bound, histogram
-statistics, the cache key, and a tiny end-to-end run with a simulated front end."""
+"""The study: the oracle bound, histogram statistics, the cache key, and a tiny end-to-end run
+with a simulated front end (the headroom classification and the pixel→voxel observations it
+counts are tested with the library, tests/library/test_observations.py)."""
 
 import json
 import os
-import types
 
 import jax
 import numpy as np
 import pytest
 
 import jaxfusion as jf
-from jaxfusion import camera as camera_lib
+from jaxfusion import observations
 from jaxfusion.lab import cli
 from jaxfusion.lab import frontend
 from jaxfusion.lab import stats
 from jaxfusion.lab import study
+from tests.library.test_observations import plane_scene
 
 # Shapes shared with tests/lab/test_demo.py (the capacity of its `demo` run) and
 # tests/lab/test_viewer_scene_data.py, so that compiled fusion steps are reused.
@@ -44,67 +45,14 @@ def _softmax(x):
   return (e / e.sum(-1, keepdims=True)).astype(np.float32)
 
 
-def test_classify_voxels_hand_built():
-  # votes per voxel (K = 3): [3,1,0] y=0 | [2,1,0] y=1 | [1,1,1] y=2 (tie) | [0,2,0] y=0 | none
-  votes = {0: [0, 0, 0, 1], 1: [0, 0, 1], 2: [0, 1, 2], 3: [1, 1]}
-  gt_index = np.array([v for v, preds in votes.items() for _ in preds])
-  pred = np.array([p for preds in votes.values() for p in preds])
-  got = study.classify_voxels(np.array([0, 1, 2, 0, 1]), gt_index, pred, 3)
-  np.testing.assert_array_equal(got, [0, 1, 1, 2, -1])
-
-
-def test_classify_voxels_against_a_loop():
-  rng = np.random.default_rng(4)
-  g, k = 40, 4
-  labels = rng.integers(0, k, g)
-  gt_index = rng.integers(-1, g, 300)
-  pred = rng.integers(0, k, 300)
-  got = study.classify_voxels(labels, gt_index, pred, k)
-  for v in range(g):
-    n = np.array([np.sum((gt_index == v) & (pred == c)) for c in range(k)])
-    others = max(n[c] for c in range(k) if c != labels[v])
-    want = -1 if n.sum() == 0 else 2 if n[labels[v]] == 0 else 0 if n[labels[v]] > others else 1
-    assert got[v] == want, v
-
-
-def _plane_scene(rng, num_frames=4, voxel_size=0.5):
-  """Frames of a wall 2 m ahead seen from shifted positions; GT by voxel column."""
-  cam = jf.Camera(16.0, 16.0, (W - 1) / 2, (H - 1) / 2)
-  depth = np.full((num_frames, H, W), 2.0, np.float32)
-  depth[:, :2, :3] = 0.0                                    # a hole: not observations
-  poses = np.tile(np.eye(4, dtype=np.float32), (num_frames, 1, 1))
-  poses[:, 0, 3] = np.linspace(0.0, 0.7, num_frames)
-  poses[:, 1, 3] = 0.05
-  keys = np.stack([np.asarray(camera_lib.depth_to_voxel_keys(depth[t], poses[t], cam,
-                                                             voxel_size)[0])
-                   for t in range(num_frames)])             # (T, N, 3)
-  valid = depth.reshape(num_frames, -1) > 0
-  coords = np.unique(keys[valid], axis=0)
-  labels = (coords[:, 0] * 5 + coords[:, 1] * 3) % K
-  seq = types.SimpleNamespace(depth=depth, T_world_cam=poses, camera=cam)
-  return seq, {"coords": coords.astype(np.int32), "labels": labels.astype(np.int32)}, keys, valid
-
-
-def test_pixel_observations_against_a_dict_lookup():
-  rng = np.random.default_rng(1)
-  seq, gt, keys, valid = _plane_scene(rng)
-  keep = rng.uniform(size=len(gt["coords"])) < 0.7          # some voxels are not in the GT
-  gt = {k: v[keep] for k, v in gt.items()}
-  probs = rng.dirichlet(np.ones(K), seq.depth.shape).astype(np.float32)
-  probs[0, 5, 5] = np.nan                                   # not an observation
-  obs = study.pixel_observations(seq.depth, seq.T_world_cam, seq.camera, probs, gt["coords"],
-                                 voxel_size=0.5)
-  index = {tuple(c): i for i, c in enumerate(gt["coords"])}
-  want = np.array([[index.get(tuple(keys[t, n]), -1) if valid[t, n] else -1
-                    for n in range(H * W)] for t in range(len(keys))])
-  want[0, 5 * W + 5] = -1
-  np.testing.assert_array_equal(obs["gt_index"], want)
-  np.testing.assert_array_equal(obs["pred"], np.argmax(probs, -1).reshape(len(keys), -1))
+def test_the_analyses_of_pixel_observations_keep_their_names_here():
+  for name in ("HEADROOM", "alpha_of_prediction", "classify_voxels", "pixel_observations"):
+    assert getattr(study, name) is getattr(observations, name), name
 
 
 def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   rng = np.random.default_rng(2)
-  seq, gt, keys, valid = _plane_scene(rng)
+  seq, gt, keys, valid = plane_scene(rng)
   index = {tuple(c): i for i, c in enumerate(gt["coords"])}
   g = np.array([[index.get(tuple(k), 0) for k in frame] for frame in keys]).reshape(
       seq.depth.shape)                                      # GT voxel of each pixel
@@ -250,7 +198,7 @@ def test_cli_study_help_and_bad_input(capsys):
 
 
 def test_analyze_sequence_rejects_mismatched_predictions():
-  seq, gt, _, _ = _plane_scene(np.random.default_rng(0))
+  seq, gt, _, _ = plane_scene(np.random.default_rng(0))
   probs = np.full(seq.depth.shape + (K,), 1.0 / K, np.float32)
   config = study.StudyConfig.of(height=H, width=W, capacity=CAPACITY)
   with pytest.raises(ValueError, match="missing"):

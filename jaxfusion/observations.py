@@ -1,0 +1,140 @@
+"""Pixel observations of ground-truth voxels: which GT voxel each pixel observes and which class
+it votes for, how the votes of a GT voxel divide, and the weight α the robust rules give a
+prediction.
+
+A fusion rule only weighs the observations a voxel gets, so these say what any rule can win
+against the ground truth, whatever front end made the probabilities. They need only the
+library's inputs (depth, poses, a `Camera`, per-pixel probabilities and variances) and GT voxels
+(`coords`, `labels`, e.g. from `datasets.gt_voxel_labels`). The study (`jaxfusion study`) counts
+them per sequence; the network's evaluation reports α (`models.evaluate.alpha_report`).
+
+Definitions (a GT voxel's label y is the majority of its GT pixel labels):
+
+* **Pixel observation**: a pixel with valid depth and finite probabilities whose voxel (the
+  engine's key, `camera.depth_to_voxel_keys`) is a GT voxel; it *votes* for the argmax of its
+  probabilities (`pixel_observations`). It is **right** when that class is y, **wrong**
+  otherwise.
+* **Headroom** (`classify_voxels`): with n_k the votes for class k over a whole sequence, an
+  observed GT voxel is *mostly right* when n_y > max_{k≠y} n_k (a plurality vote is right),
+  *outvoted right* when 0 < n_y ≤ max_{k≠y} n_k (some observations are right but are outvoted
+  or tied: only here can a better weighting of the observations win), and *never right* when
+  n_y = 0 (`HEADROOM`, in that order).
+* **α** of a prediction (`alpha_of_prediction`): `−log(clip(var_c, 0, 0.25) + ε)` of its
+  predicted class c, the concentration the robust rules D and D+R give it.
+
+Shape legend: T frames, H×W pixels, N = H·W, K classes, G GT voxels, P pixel observations.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfusion import camera as camera_lib
+from jaxfusion.rules.robust import DEFAULT_EPS
+
+# The headroom categories of `classify_voxels`, by code (−1: not observed).
+HEADROOM = ("mostly right", "outvoted right", "never right")
+
+
+@jax.jit
+def _frame_keys(depth, T_world_cam, camera, voxel_size):
+  keys, in_range = jax.vmap(camera_lib.depth_to_voxel_keys, in_axes=(0, 0, None, None))(
+      depth, T_world_cam, camera, voxel_size)
+  d = depth.reshape(depth.shape[0], -1)
+  return keys, in_range & jnp.isfinite(d) & (d > 0)
+
+
+def _rows(coords) -> np.ndarray:
+  coords = np.ascontiguousarray(np.asarray(coords, np.int32).reshape(-1, 3))
+  return coords.view(np.dtype((np.void, 12))).reshape(-1)
+
+
+def pixel_observations(depth, T_world_cam, camera, probs, gt_coords, *,
+                       voxel_size: float) -> dict:
+  """Which GT voxel each pixel observes and which class it votes for.
+
+  Args:
+    depth: `(T, H, W)` float depth (invalid: 0, negative or non-finite).
+    T_world_cam: `(T, 4, 4)` camera-to-world poses.
+    camera: intrinsics.
+    probs: `(T, H, W, K)` probabilities whose argmax is the vote (pixels with non-finite
+      probabilities are not observations, as in the engine).
+    gt_coords: `(G, 3)` int GT voxel coordinates (unique).
+    voxel_size: voxel edge in metres (the maps' and the GT's).
+
+  Returns:
+    dict with `gt_index (T, N) int64` (the pixel's GT voxel, −1 for no observation) and
+    `pred (T, N) int64` (the argmax class).
+  """
+  depth = np.asarray(depth, np.float32)
+  probs = np.asarray(probs)
+  if depth.ndim != 3 or probs.shape[:3] != depth.shape:
+    raise ValueError(f"depth must be (T, H, W) and probs (T, H, W, K); got {depth.shape} and "
+                     f"{probs.shape}")
+  t = depth.shape[0]
+  keys, valid = _frame_keys(jnp.asarray(depth), jnp.asarray(T_world_cam, jnp.float32), camera,
+                            jnp.float32(voxel_size))
+  keys, valid = np.asarray(keys).reshape(-1, 3), np.array(valid).reshape(-1)
+  flat_probs = probs.reshape(-1, probs.shape[-1])
+  valid &= np.all(np.isfinite(flat_probs), axis=-1)
+  gt_rows = _rows(gt_coords)
+  pix_rows = _rows(keys[valid])
+  _, inverse = np.unique(np.concatenate([gt_rows, pix_rows]), return_inverse=True)
+  inverse = inverse.reshape(-1)
+  lookup = np.full(int(inverse.max()) + 1 if inverse.size else 0, -1, np.int64)
+  lookup[inverse[:len(gt_rows)]] = np.arange(len(gt_rows))
+  gt_index = np.full(valid.shape, -1, np.int64)
+  gt_index[valid] = lookup[inverse[len(gt_rows):]]
+  pred = np.argmax(flat_probs, axis=-1).astype(np.int64)
+  return {"gt_index": gt_index.reshape(t, -1), "pred": pred.reshape(t, -1)}
+
+
+def classify_voxels(gt_labels, gt_index, pred, num_classes: int) -> np.ndarray:
+  """The headroom category of every GT voxel from its pixel votes (see the module docstring).
+
+  Args:
+    gt_labels: `(G,)` int GT label y per voxel.
+    gt_index: `(P,)` int GT voxel of each pixel observation (entries < 0 are ignored).
+    pred: `(P,)` int class each observation votes for.
+    num_classes: K.
+
+  Returns:
+    `(G,) int8`: 0 mostly right, 1 outvoted right, 2 never right, −1 not observed.
+  """
+  y = np.asarray(gt_labels, np.int64).reshape(-1)
+  gt_index = np.asarray(gt_index, np.int64).reshape(-1)
+  pred = np.asarray(pred, np.int64).reshape(-1)
+  if gt_index.shape != pred.shape:
+    raise ValueError(f"gt_index and pred must have the same length; got {gt_index.shape} and "
+                     f"{pred.shape}")
+  g = len(y)
+  keep = gt_index >= 0
+  votes = np.bincount(gt_index[keep] * num_classes + pred[keep],
+                      minlength=g * num_classes).reshape(g, num_classes)
+  rows = np.arange(g)
+  right = votes[rows, y]
+  others = votes.copy()
+  others[rows, y] = -1
+  best_other = others.max(1) if num_classes > 1 else np.zeros(g, np.int64)
+  category = np.where(right > best_other, 0, 1)
+  category = np.where(right == 0, 2, category)
+  return np.where(votes.sum(1) == 0, -1, category).astype(np.int8)
+
+
+def alpha_of_prediction(var, pred, *, eps: float = DEFAULT_EPS) -> np.ndarray:
+  """`α = −log(clip(var_c, 0, 0.25) + ε)` of the predicted class c (the D rules' weight).
+
+  The concentration `rules.robust.concentration` gives an observation of class c, in NumPy and
+  float64 for statistics over many pixels.
+
+  Args:
+    var: `(..., K)` per-class MC variance.
+    pred: `(...)` int predicted class.
+    eps: ε of the robust rules.
+
+  Returns:
+    `(...) float64` α.
+  """
+  var = np.asarray(var)
+  v = np.take_along_axis(var, np.asarray(pred)[..., None], axis=-1)[..., 0]
+  return -np.log(np.clip(v.astype(np.float64), 0.0, 0.25) + eps)
