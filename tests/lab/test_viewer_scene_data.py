@@ -1,6 +1,9 @@
 """The viewer's pure parts: finding and loading maps, colours per mode, legend, filters, and the
 `view` command's one-line errors. No browser and no viser needed."""
 
+import dataclasses
+import io as io_lib
+import math
 import os
 import sys
 
@@ -11,6 +14,7 @@ import pytest
 import jaxfusion as jf
 from jaxfusion.lab import cli
 from jaxfusion import io
+from jaxfusion import mesh as mesh_lib
 from jaxfusion.lab.viewer import scene_data as sd
 from tests import engine_helpers as h
 
@@ -275,8 +279,11 @@ def test_view_without_viser_says_what_to_install(run_folder, capsys, monkeypatch
     assert "--host" in err and err.count("\n") == 1
 
 
-def test_maps_from_jaxfusion_run_carry_poses_and_gt(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def run_output(tmp_path_factory):
+  """`(sequence, folder)`: a `jaxfusion run` of 3 synthetic frames (with its geometry layer)."""
   from jaxfusion import datasets, sources
+  tmp_path = tmp_path_factory.mktemp("run")
   seq = datasets.make_sequence("office", 0, num_frames=3, height=24, width=32)
   k = len(seq.class_names)
   for t in range(len(seq)):   # predictions: the GT labels, softened
@@ -287,7 +294,11 @@ def test_maps_from_jaxfusion_run_carry_poses_and_gt(tmp_path, capsys):
   assert cli.main(["run", "--data", "synthetic:office/0", "--frames", "3", "--height", "24",
                    "--width", "32", "--rule", "bayes", "--predictions", str(tmp_path / "pred"),
                    "--capacity", "131072", "--out", str(out)]) == 0
-  capsys.readouterr()
+  return seq, out
+
+
+def test_maps_from_jaxfusion_run_carry_poses_and_gt(run_output):
+  seq, out = run_output
   (m,) = sd.load_maps([str(out)])
   assert m.sequence == seq.name and m.class_names == tuple(seq.class_names)
   np.testing.assert_array_equal(m.poses, seq.T_world_cam)
@@ -295,3 +306,225 @@ def test_maps_from_jaxfusion_run_carry_poses_and_gt(tmp_path, capsys):
                       "cy": seq.camera.cy, "height": 24, "width": 32}
   assert m.gt_labels is not None and np.mean(m.gt_labels >= 0) > 0.9
   assert "correct" in sd.color_modes(m)
+
+
+# The mesh (a hand-made one) ----------------------------------------------------------------
+
+# Five vertices, three faces; vertex 2 has no semantic voxel.
+MESH_VERTICES = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1], [2, 0, 2]], np.float32)
+MESH_FACES = np.array([[0, 1, 2], [1, 3, 2], [1, 4, 3]], np.int32)
+LOG4 = float(np.log(4))
+
+
+def _mesh_view_map(*, mesh_gt=None, confidence=None, gt_labels=None):
+  mesh = mesh_lib.Mesh(
+      vertices=MESH_VERTICES, faces=MESH_FACES,
+      normals=np.tile(np.array([[0, 0, 1]], np.float32), (5, 1)),
+      labels=np.array([0, 2, -1, 2, 1], np.int32),
+      confidence=np.array([0.25, 0.625, 0.0, 1.0, 0.5], np.float32),
+      entropy=np.array([0.0, LOG4 / 2, LOG4, LOG4, 2 * LOG4], np.float32),
+      face_labels=np.array([0, 2, 1], np.int32))
+  return dataclasses.replace(
+      _view_map([0, 1], confidence=confidence, gt_labels=gt_labels), mesh=mesh,
+      mesh_gt_labels=None if mesh_gt is None else np.asarray(mesh_gt, np.int32))
+
+
+def test_what_is_shown_and_which_colour_modes():
+  plain, meshed = _view_map([0, 1]), _mesh_view_map()
+  for show in sd.SHOW_CHOICES:   # a map without a mesh always shows its voxels
+    assert sd.shown_layers(plain, show) == (False, True)
+  assert sd.shown_layers(meshed, "mesh") == (True, False)
+  assert sd.shown_layers(meshed, "voxels") == (False, True)
+  assert sd.shown_layers(meshed, "mesh + voxels") == (True, True)
+  with pytest.raises(ValueError, match="show must be one of"):
+    sd.shown_layers(meshed, "surface")
+  assert sd.mesh_color_modes(plain) == ()
+  assert sd.mesh_color_modes(meshed) == ("class", "entropy", "confidence")   # no GT
+  assert sd.mesh_color_modes(_mesh_view_map(mesh_gt=[0] * 5)) == (
+      "class", "entropy", "confidence", "correct")
+  # No ᾱ and no GT on the voxels: the mesh has a max posterior, the voxels hit counts.
+  assert sd.mode_titles(meshed, "mesh") == {"class": "class", "entropy": "entropy",
+                                            "confidence": "confidence (max posterior)"}
+  assert sd.mode_titles(meshed, "voxels") == {"class": "class", "entropy": "entropy",
+                                              "hits": "hit count"}
+  assert sd.mode_titles(meshed, "mesh + voxels") == {"class": "class", "entropy": "entropy"}
+  full = _mesh_view_map(mesh_gt=[0] * 5, confidence=[1.0, 2.0], gt_labels=[0, 0])
+  assert sd.mode_titles(full, "mesh + voxels") == {
+      "class": "class", "entropy": "entropy",
+      "confidence": "confidence (mesh: max posterior, voxels: ᾱ)",
+      "correct": "right / wrong vs GT"}
+  assert sd.mode_titles(full, "voxels") == sd.COLOR_MODES
+  assert sd.mode_titles(plain, "mesh") == {m: sd.COLOR_MODES[m] for m in sd.color_modes(plain)}
+
+
+def test_mesh_scalars_use_fixed_scales():
+  m = _mesh_view_map()
+  t, lo, hi, unit = sd.mesh_scalar(m, "entropy")   # [0, log K] nats, as the voxels
+  np.testing.assert_allclose(t, [0.0, 0.5, 1.0, 1.0, 1.0], atol=1e-6)
+  assert (lo, unit) == (0.0, "nats") and hi == pytest.approx(LOG4)
+  t, lo, hi, unit = sd.mesh_scalar(m, "confidence")   # max posterior over [1/K, 1]
+  np.testing.assert_allclose(t, [0.0, 0.5, 0.0, 1.0, 1 / 3], atol=1e-6)
+  assert (lo, hi, unit) == (0.25, 1.0, "")
+  with pytest.raises(ValueError, match="mesh colour mode"):
+    sd.mesh_scalar(m, "hits")   # a count per voxel, not on the surface
+  with pytest.raises(ValueError, match="no mesh"):
+    sd.mesh_scalar(_view_map([0]), "entropy")
+
+
+def test_mesh_colours_per_mode():
+  palette = np.array([[1, 2, 3], [10, 20, 30], [200, 0, 0], [0, 200, 0]], np.uint8)
+  grey = sd.NO_VOXEL_COLOR
+  m = _mesh_view_map(mesh_gt=[0, 1, -1, 2, -1])
+  np.testing.assert_array_equal(sd.mesh_colors(m, "class", palette),
+                                [[1, 2, 3], [200, 0, 0], grey, [200, 0, 0], [10, 20, 30]])
+  v0, v_half, v1 = _viridis([0.0, 0.5, 1.0])
+  np.testing.assert_allclose(sd.mesh_colors(m, "entropy", None),
+                             [v0, v_half, grey, v1, v1], atol=1)
+  np.testing.assert_allclose(sd.mesh_colors(m, "confidence", None),
+                             [v0, v_half, grey, v1, _viridis([1 / 3])[0]], atol=1)
+  np.testing.assert_array_equal(
+      sd.mesh_colors(m, "correct", None),
+      [sd.RIGHT_COLOR, sd.WRONG_COLOR, sd.UNSCORED_COLOR, sd.RIGHT_COLOR, sd.UNSCORED_COLOR])
+  assert sd.mesh_legend(m, "correct", None)[1:] == [
+      ("right (2, accuracy 66.7 %)", sd.RIGHT_COLOR), ("wrong (1)", sd.WRONG_COLOR),
+      ("not in GT (2)", sd.UNSCORED_COLOR)]
+  assert sd.mesh_legend(m, "class", palette) == [
+      ("mesh: vertices per class", None), ("wall (1)", (1, 2, 3)), ("chair (1)", (10, 20, 30)),
+      ("table (2)", (200, 0, 0)), ("plant (0)", (0, 200, 0)),
+      ("no semantic voxel (1)", grey)]
+  with pytest.raises(ValueError, match="palette"):
+    sd.mesh_colors(m, "class", palette[:3])
+  with pytest.raises(ValueError, match="no GT"):
+    sd.mesh_colors(_mesh_view_map(), "correct", None)
+  assert "mesh: confidence" in sd.legend_html(sd.mesh_legend(m, "confidence", None))
+
+
+def test_mesh_faces_by_class_and_height_and_their_part():
+  m = _mesh_view_map()   # face classes 0, 2, 1; centroid heights 0, 1/3, 1
+  np.testing.assert_array_equal(sd.mesh_face_mask(m), [1, 1, 1])
+  np.testing.assert_array_equal(sd.mesh_face_mask(m, hidden_classes=[2]), [1, 0, 1])
+  np.testing.assert_array_equal(sd.mesh_face_mask(m, max_height=0.5), [1, 1, 0])
+  np.testing.assert_array_equal(sd.mesh_face_mask(m, hidden_classes={0}, max_height=0.5),
+                                [0, 1, 0])
+  np.testing.assert_array_equal(sd.mesh_face_mask(m, max_height=0.5, up_axis=0), [1, 0, 0])
+  with pytest.raises(ValueError, match="hidden classes"):
+    sd.mesh_face_mask(m, hidden_classes=[4])
+  # The part keeps only the vertices its faces use, renumbered in order: 1, 2, 3, 4 → 0 … 3.
+  colors = np.arange(15, dtype=np.uint8).reshape(5, 3)
+  vertices, faces, part_colors, normals = sd.mesh_part(m, np.array([False, True, True]), colors)
+  np.testing.assert_array_equal(vertices, MESH_VERTICES[1:])
+  np.testing.assert_array_equal(faces, [[0, 2, 1], [0, 3, 2]])
+  np.testing.assert_array_equal(vertices[faces], MESH_VERTICES[MESH_FACES[1:]])
+  np.testing.assert_array_equal(part_colors, colors[1:])
+  assert faces.dtype == np.int32 and normals.shape == (4, 3)
+  empty = sd.mesh_part(m, np.zeros(3, bool), colors)
+  assert [len(a) for a in empty] == [0, 0, 0, 0]
+  # The mesh counts in the height slider's range and in the start view.
+  assert sd.height_range([m]) == (0.0, 2.0)
+  np.testing.assert_allclose(sd.initial_camera([m])[1], [1.0, 0.5, 1.0])
+
+
+def _srgb_to_linear_by_hand(v):
+  c = v / 255
+  return c / 12.92 if c <= 0.04045 else math.pow((c + 0.055) / 1.055, 2.4)
+
+
+def test_srgb_to_linear_follows_the_srgb_formula():
+  values = np.arange(256, dtype=np.uint8)
+  expected = [round(255 * _srgb_to_linear_by_hand(int(v))) for v in values]
+  np.testing.assert_array_equal(sd.srgb_to_linear(values[:, None].repeat(3, 1)),
+                                np.array(expected)[:, None].repeat(3, 1))
+  got = sd.srgb_to_linear(np.array([[0, 10, 128], [200, 255, 11]], np.uint8))
+  np.testing.assert_array_equal(got, [[0, 1, 55], [147, 255, 1]])   # by hand
+  assert got.dtype == np.uint8
+
+
+def test_mesh_glb_round_trips_with_a_rough_material():
+  import json
+  import struct
+  trimesh = pytest.importorskip("trimesh")
+  colors = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [128, 128, 128], [10, 20, 30]],
+                    np.uint8)
+  normals = np.tile(np.array([[0, 0, 1]], np.float32), (5, 1))
+  glb = sd.mesh_glb(MESH_VERTICES, MESH_FACES, colors, normals)
+  assert glb[:4] == b"glTF" and struct.unpack_from("<I", glb, 8)[0] == len(glb)
+  scene = trimesh.load(io_lib.BytesIO(glb), file_type="glb", process=False)
+  (mesh,) = scene.geometry.values()
+  np.testing.assert_allclose(mesh.vertices, MESH_VERTICES)
+  np.testing.assert_array_equal(mesh.faces, MESH_FACES)
+  np.testing.assert_allclose(mesh.vertex_normals, normals, atol=1e-6)
+  # glTF vertex colours are linear: sRGB 128 → 55, 10 → 1 (the page turns them back).
+  np.testing.assert_array_equal(mesh.visual.vertex_attributes["color"][:, :3],
+                                [[255, 0, 0], [0, 255, 0], [0, 0, 255], [55, 55, 55], [1, 2, 3]])
+  material = mesh.visual.material
+  assert material.metallicFactor == 0.0 and material.roughnessFactor == 1.0
+  json_length = struct.unpack_from("<I", glb, 12)[0]
+  assert json_length % 4 == 0
+  doc = json.loads(glb[20:20 + json_length])
+  assert [p["material"] for p in doc["meshes"][0]["primitives"]] == [0]
+  assert doc["materials"][0]["doubleSided"] is False
+
+
+def test_vertex_gt_labels_by_brute_force():
+  rng = np.random.default_rng(3)
+  voxel = 0.1
+  coords = np.unique(rng.integers(-5, 5, (300, 3)), axis=0).astype(np.int32)
+  gt = rng.integers(-1, 4, len(coords)).astype(np.int32)
+  points = rng.uniform(-0.5, 0.5, (400, 3)).astype(np.float32)
+  points[:20] = np.round(points[:20] / voxel) * voxel   # on voxel faces
+  points[20] = np.nan
+  points[21] = [np.inf, 0, 0]
+  points[22] = [1e12, 0, 0]   # beyond the key range
+  table = {tuple(c): l for c, l in zip(coords.tolist(), gt.tolist())}
+  keys = np.floor(points / np.float32(voxel))
+  expected = [table.get(tuple(int(x) for x in k), -1) if np.all(np.abs(k) < 1e6) else -1
+              for k in keys]
+  got = sd.vertex_gt_labels(points, voxel, coords, gt)
+  np.testing.assert_array_equal(got, expected)
+  assert got.dtype == np.int32 and np.sum(got >= 0) > 40
+  assert sd.vertex_gt_labels(points[:0], voxel, coords, gt).shape == (0,)
+  np.testing.assert_array_equal(sd.vertex_gt_labels(points, voxel, coords[:0], gt[:0]), -1)
+
+
+# The mesh of a saved map -------------------------------------------------------------------
+
+
+def test_a_run_map_shows_its_mesh_with_gt_per_vertex(run_output):
+  _, out = run_output
+  (m,) = sd.load_maps([str(out)])
+  state, _, _ = io.load_map(m.path)
+  assert state.geometry is not None   # `jaxfusion run` keeps a geometry layer
+  ref = jf.extract_mesh(state)
+  assert m.mesh.num_faces == ref.num_faces > 0
+  np.testing.assert_array_equal(m.mesh.vertices, ref.vertices)
+  np.testing.assert_array_equal(m.mesh.labels, ref.labels)
+  # Each vertex's GT: the GT label of the semantic voxel floor(p / voxel) it lies in, by a
+  # dictionary of the GT file beside the map (−1 for vertices without a semantic voxel).
+  gt = np.load(os.path.splitext(m.path)[0] + "_gt.npz")
+  table = {tuple(c): int(l) for c, l in zip(gt["coords"].tolist(), gt["labels"].tolist())}
+  map_voxels = set(map(tuple, jf.read_map(state)["coords"].tolist()))
+  keys = np.floor(m.mesh.vertices / np.float32(m.voxel_size)).astype(int)
+  expected = [table.get(tuple(key), -1) if label >= 0 and tuple(key) in map_voxels else -1
+              for key, label in zip(keys.tolist(), m.mesh.labels.tolist())]
+  np.testing.assert_array_equal(m.mesh_gt_labels, expected)
+  # (24 × 32 pixels leave gaps between 10 cm semantic voxels that the TSDF's projective
+  # integration fills: most vertices have no semantic voxel; those that have are all in GT.)
+  scored = m.mesh_gt_labels >= 0
+  np.testing.assert_array_equal(scored, m.mesh.labels >= 0)
+  assert scored.sum() > 1000
+  # Predictions are the GT, softened: the mesh's vertices are mostly right.
+  assert np.mean(m.mesh.labels[scored] == m.mesh_gt_labels[scored]) > 0.8
+  assert sd.mesh_color_modes(m) == sd.MESH_COLOR_MODES
+
+
+def test_maps_without_a_geometry_layer_or_faces_have_no_mesh(tmp_path, run_folder):
+  root, _, _ = run_folder
+  for m in sd.load_maps([str(root)]):
+    assert m.mesh is None and m.mesh_gt_labels is None
+    assert sd.mesh_color_modes(m) == ()
+  rule = jf.rules.by_name("bayes")
+  state = jf.init_map(capacity=256, num_classes=len(NAMES), voxel_size=0.25, rule=rule,
+                      geometry=jf.TSDFConfig(capacity=2**4))   # nothing integrated: no face
+  io.save_map(str(tmp_path / "empty.npz"), state, rule, class_names=NAMES)
+  (m,) = sd.load_maps([str(tmp_path / "empty.npz")])
+  assert m.mesh is None

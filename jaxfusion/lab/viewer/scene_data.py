@@ -1,8 +1,9 @@
 """What the 3-D viewer shows, computed without the viewer: finding and loading saved maps,
-validating them, colouring voxels in each colour mode, the legend, filtering by class and
-height, and choosing cubes or points. Nothing here imports viser.
+validating them, colouring voxels (and the mesh of a map with a geometry layer) in each colour
+mode, the legend, filtering by class and height, and choosing cubes or points. Nothing here
+imports viser.
 
-Shape legend: N voxels, K classes, T frames.
+Shape legend: N voxels, K classes, T frames, P mesh vertices, F mesh faces.
 """
 
 import dataclasses
@@ -28,6 +29,13 @@ COLOR_MODES = {
 RIGHT_COLOR = (40, 170, 70)
 WRONG_COLOR = (220, 40, 40)
 UNSCORED_COLOR = (175, 175, 175)   # a voxel the GT map does not have (or ignores)
+NO_VOXEL_COLOR = (160, 160, 160)   # a mesh vertex without a semantic voxel (jaxfusion.io's grey)
+# Colour modes of the mesh (hit counts are per voxel, not on the surface). "confidence" on the
+# mesh is the posterior's max at the vertex (every rule has one), not ᾱ.
+MESH_COLOR_MODES = ("class", "entropy", "confidence", "correct")
+MESH_CONFIDENCE_TITLE = "confidence (max posterior)"
+# What the viewer shows of a map that has a mesh (a map without one always shows its voxels).
+SHOW_CHOICES = ("mesh", "voxels", "mesh + voxels")
 DEFAULT_MAX_CUBES = 200_000
 COLORMAP = "viridis"
 
@@ -52,6 +60,11 @@ class ViewMap:
       when no GT map is saved beside the map.
     poses: `(T, 4, 4) float32` camera-to-world poses of the fused frames, or None.
     camera: intrinsics of those frames (`fx, fy, cx, cy, height, width`), or None.
+    mesh: the surface of the map's geometry layer (`jaxfusion.mesh.Mesh`, extracted once at
+      load, each vertex labelled from the semantic layer), or None for a map without a
+      geometry layer (or one whose mesh has no face).
+    mesh_gt_labels: `(P,) int32` GT label of the semantic voxel each mesh vertex lies in (−1
+      where the map or the GT has no voxel there), or None without a mesh or a GT map.
   """
   path: str
   name: str
@@ -66,6 +79,8 @@ class ViewMap:
   gt_labels: Optional[np.ndarray] = None
   poses: Optional[np.ndarray] = None
   camera: Optional[dict] = None
+  mesh: Optional[object] = None
+  mesh_gt_labels: Optional[np.ndarray] = None
 
   def __len__(self) -> int:
     return int(len(self.labels))
@@ -177,6 +192,31 @@ def gt_labels_for(coords: np.ndarray, gt: dict) -> np.ndarray:
   return out
 
 
+def vertex_gt_labels(vertices: np.ndarray, voxel_size, coords: np.ndarray,
+                     gt_labels: np.ndarray) -> np.ndarray:
+  """`(P,) int32` GT label of the semantic voxel each point lies in (−1 where none).
+
+  A point lies in the voxel `floor(p / voxel_size)`, computed by the engine's own
+  `camera.voxel_keys` (the arithmetic `jf.query` — and so the mesh's vertex labels — uses);
+  that voxel is looked up among the map's voxel `coords (N, 3)`, whose GT labels are
+  `gt_labels (N,)`.
+  """
+  import jax.numpy as jnp
+  from jaxfusion import camera, metrics
+  out = np.full(len(vertices), -1, np.int32)
+  if not len(vertices) or not len(coords):
+    return out
+  keys, in_range = camera.voxel_keys(jnp.asarray(vertices, jnp.float32), voxel_size)
+  keys, in_range = np.asarray(keys), np.asarray(in_range)
+  unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+  map_index, unique_index = metrics.match_voxels(np.asarray(coords, np.int32), unique)
+  label_of_unique = np.full(len(unique), -1, np.int32)
+  label_of_unique[unique_index] = np.asarray(gt_labels, np.int32)[map_index]
+  out[:] = label_of_unique[inverse.reshape(-1)]
+  out[~in_range] = -1
+  return out
+
+
 def map_name(rule) -> str:
   """The dropdown name of a map: the rule's paper name, β when it has one, mean aggregation."""
   from jaxfusion import rules
@@ -210,13 +250,22 @@ def load_view_map(path: str) -> ViewMap:
   gt_file = gt_path_for(path, extra.get("sequence"))
   gt_labels = None if gt_file is None else gt_labels_for(voxels["coords"], load_gt(gt_file))
   trajectory = io.load_trajectory(path)
+  mesh = mesh_gt = None
+  if state.geometry is not None:
+    mesh = jf.extract_mesh(state)
+    if mesh.num_faces == 0:
+      mesh = None
+    elif gt_labels is not None:
+      mesh_gt = vertex_gt_labels(mesh.vertices, state.voxel_size, voxels["coords"], gt_labels)
+      mesh_gt[mesh.labels < 0] = -1
   return ViewMap(
       path=path, name=map_name(rule), sequence=str(sequence), class_names=names,
       voxel_size=float(state.voxel_size), centers=voxels["centers"], labels=labels,
       hits=voxels["hits"], entropy=voxels["entropy"], confidence=confidence,
       gt_labels=gt_labels,
       poses=None if trajectory is None else trajectory["T_world_cam"],
-      camera=None if trajectory is None else trajectory["camera"])
+      camera=None if trajectory is None else trajectory["camera"], mesh=mesh,
+      mesh_gt_labels=mesh_gt)
 
 
 def check_same_classes(maps: Sequence[ViewMap]) -> None:
@@ -361,9 +410,15 @@ def legend(m: ViewMap, mode: str, palette: np.ndarray) -> list:
 
 
 def legend_html(entries: Sequence[tuple]) -> str:
-  """The legend as HTML: a colour swatch and the (escaped) text per entry."""
+  """The legend as HTML: a colour swatch and the (escaped) text per entry; an entry whose
+  colour is None is a heading."""
   rows = []
-  for text, (r, g, b) in entries:
+  for text, color in entries:
+    if color is None:   # a heading
+      rows.append('<div style="font-size:0.85em;font-weight:bold;margin-top:4px;">'
+                  f'{html.escape(str(text))}</div>')
+      continue
+    r, g, b = color
     rows.append(
         '<div style="display:flex;align-items:center;gap:6px;font-size:0.85em;">'
         f'<span style="display:inline-block;width:0.9em;height:0.9em;border:1px solid #888;'
@@ -386,6 +441,220 @@ def visible_mask(m: ViewMap, *, hidden_classes: Iterable[int] = (),
   return keep
 
 
+# The mesh ------------------------------------------------------------------------------------
+
+
+def shown_layers(m: ViewMap, show: str) -> tuple:
+  """`(mesh, voxels)`: which layers of `m` are drawn for the "Show" choice `show` (one of
+  `SHOW_CHOICES`). A map without a mesh always shows its voxels, whatever `show` says."""
+  if show not in SHOW_CHOICES:
+    raise ValueError(f"show must be one of {list(SHOW_CHOICES)}; got {show!r}")
+  if m.mesh is None:
+    return False, True
+  return show != "voxels", show != "mesh"
+
+
+def mesh_color_modes(m: ViewMap) -> tuple:
+  """The colour modes the mesh of `m` supports (none without a mesh; correct needs GT)."""
+  if m.mesh is None:
+    return ()
+  return tuple(mode for mode in MESH_COLOR_MODES
+               if mode != "correct" or m.mesh_gt_labels is not None)
+
+
+def shown_color_modes(m: ViewMap, show: str) -> tuple:
+  """The colour modes that every layer drawn for `show` supports, in `COLOR_MODES` order."""
+  mesh, voxels = shown_layers(m, show)
+  modes = set(COLOR_MODES)
+  if voxels:
+    modes &= set(color_modes(m))
+  if mesh:
+    modes &= set(mesh_color_modes(m))
+  return tuple(mode for mode in COLOR_MODES if mode in modes)
+
+
+def mode_titles(m: ViewMap, show: str) -> dict:
+  """`{mode: title}` of the colour control for `show`: confidence is the posterior's max on
+  the mesh and ᾱ on the voxels, and its title says which."""
+  mesh, voxels = shown_layers(m, show)
+  titles = {mode: COLOR_MODES[mode] for mode in shown_color_modes(m, show)}
+  if "confidence" in titles and mesh:
+    titles["confidence"] = (MESH_CONFIDENCE_TITLE if not voxels else
+                            "confidence (mesh: max posterior, voxels: ᾱ)")
+  return titles
+
+
+def _check_mesh_mode(m: ViewMap, mode: str) -> None:
+  if m.mesh is None:
+    raise ValueError(f"{m.name}: this map has no mesh (it was saved without a geometry layer)")
+  if mode not in MESH_COLOR_MODES:
+    raise ValueError(f"mesh colour mode must be one of {list(MESH_COLOR_MODES)}; got {mode!r}")
+  if mode == "correct" and m.mesh_gt_labels is None:
+    raise ValueError(f"{m.name}: no GT voxel labels are saved beside {m.path}")
+
+
+def mesh_scalar(m: ViewMap, mode: str) -> tuple:
+  """The per-vertex value a continuous mode shows on the mesh, on a fixed scale: entropy over
+  [0, log K] nats (as the voxels), confidence (the posterior's max) over [1/K, 1].
+
+  Returns:
+    `(t, lo, hi, unit)` as `scalar_field`.
+  """
+  _check_mesh_mode(m, mode)
+  k = max(m.num_classes, 2)
+  if mode == "entropy":
+    hi = float(np.log(k))
+    return np.clip(m.mesh.entropy / hi, 0.0, 1.0).astype(np.float32), 0.0, hi, "nats"
+  if mode == "confidence":
+    lo = 1.0 / k
+    t = (np.asarray(m.mesh.confidence, np.float64) - lo) / (1.0 - lo)
+    return np.clip(t, 0.0, 1.0).astype(np.float32), lo, 1.0, ""
+  raise ValueError(f"{mode!r} is not a continuous colour mode")
+
+
+def mesh_colors(m: ViewMap, mode: str, palette: np.ndarray) -> np.ndarray:
+  """`(P, 3) uint8` colour of every mesh vertex of `m` in colour mode `mode`.
+
+  Class: the palette; entropy and confidence: `mesh_scalar` on the viewer's colour scale;
+  correct: right where the vertex's label is the GT label of the semantic voxel it lies in,
+  wrong where it is another, unscored where the GT (or the map) has no voxel there. Vertices
+  without a semantic voxel are grey (`NO_VOXEL_COLOR`) in the other modes.
+
+  Raises:
+    ValueError: no mesh, a mode the mesh does not support, a palette of the wrong size.
+  """
+  _check_mesh_mode(m, mode)
+  mesh = m.mesh
+  labelled = mesh.labels >= 0
+  if mode == "correct":
+    gt = m.mesh_gt_labels
+    out = np.empty((mesh.num_vertices, 3), np.uint8)
+    out[:] = UNSCORED_COLOR
+    scored = gt >= 0
+    out[scored & (gt == mesh.labels)] = RIGHT_COLOR
+    out[scored & (gt != mesh.labels)] = WRONG_COLOR
+    return out
+  if mode == "class":
+    palette = np.asarray(palette, np.uint8)
+    if palette.ndim != 2 or palette.shape[1] != 3 or len(palette) < m.num_classes:
+      raise ValueError(f"palette must be (K ≥ {m.num_classes}, 3); got {palette.shape}")
+    colors = palette[np.maximum(mesh.labels, 0)]
+  else:
+    colors = colormap(mesh_scalar(m, mode)[0])
+  colors[~labelled] = NO_VOXEL_COLOR
+  return colors
+
+
+def mesh_legend(m: ViewMap, mode: str, palette: np.ndarray) -> list:
+  """`[(text, (r, g, b) or None for a heading), ...]` explaining `mesh_colors(m, mode, ...)`;
+  counts are of mesh vertices."""
+  _check_mesh_mode(m, mode)
+  mesh = m.mesh
+  unlabelled = int(np.sum(mesh.labels < 0))
+  no_voxel = [(f"no semantic voxel ({unlabelled})", NO_VOXEL_COLOR)] if unlabelled else []
+  if mode == "class":
+    counts = np.bincount(mesh.labels[mesh.labels >= 0], minlength=m.num_classes)
+    return ([("mesh: vertices per class", None)]
+            + [(f"{name} ({int(n)})", tuple(int(c) for c in palette[i]))
+               for i, (name, n) in enumerate(zip(m.class_names, counts))] + no_voxel)
+  if mode == "correct":
+    gt = m.mesh_gt_labels
+    scored = gt >= 0
+    right = int(np.sum(scored & (gt == mesh.labels)))
+    wrong = int(np.sum(scored)) - right
+    acc = f", accuracy {100 * right / max(right + wrong, 1):.1f} %"
+    return [("mesh: vertices vs GT of their voxel", None),
+            (f"right ({right}{acc})", RIGHT_COLOR), (f"wrong ({wrong})", WRONG_COLOR),
+            (f"not in GT ({mesh.num_vertices - right - wrong})", UNSCORED_COLOR)]
+  _, lo, hi, unit = mesh_scalar(m, mode)
+  stops = np.linspace(0.0, 1.0, 5)
+  heading = ("mesh: entropy" if mode == "entropy" else
+             "mesh: confidence = max posterior probability")
+  return ([(heading, None)]
+          + [(f"{v:.3g} {unit}".rstrip(), tuple(int(x) for x in c))
+             for v, c in zip(lo + stops * (hi - lo), colormap(stops))] + no_voxel)
+
+
+def mesh_face_mask(m: ViewMap, *, hidden_classes: Iterable[int] = (),
+                   max_height: Optional[float] = None, up_axis: int = 2) -> np.ndarray:
+  """`(F,) bool`: mesh faces whose class (at the face's centroid, `Mesh.face_labels`) is not
+  hidden and whose centroid is at most `max_height` metres along the up axis (None: no cut).
+  Faces without a semantic voxel have no class and are kept."""
+  if m.mesh is None:
+    raise ValueError(f"{m.name}: this map has no mesh")
+  hidden = np.asarray(sorted(set(int(c) for c in hidden_classes)), np.int64)
+  if np.any((hidden < 0) | (hidden >= m.num_classes)):
+    raise ValueError(f"hidden classes must be in [0, {m.num_classes}); got {hidden.tolist()}")
+  if up_axis not in (0, 1, 2):
+    raise ValueError(f"up_axis must be 0, 1 or 2; got {up_axis}")
+  mesh = m.mesh
+  keep = ~np.isin(mesh.face_labels, hidden)
+  if max_height is not None:
+    keep &= mesh.vertices[mesh.faces][:, :, up_axis].mean(axis=1) <= max_height
+  return keep
+
+
+def mesh_part(m: ViewMap, keep: np.ndarray, colors: np.ndarray) -> tuple:
+  """The faces of `m.mesh` where `keep`, with only the vertices they use (renumbered).
+
+  Returns:
+    `(vertices (p, 3) float32, faces (f, 3) int32, colors (p, 3) uint8, normals (p, 3)
+    float32)`.
+  """
+  mesh = m.mesh
+  faces = mesh.faces[np.asarray(keep, bool)]
+  used = np.zeros(mesh.num_vertices, bool)
+  used[faces.reshape(-1)] = True
+  index = (np.cumsum(used) - 1).astype(np.int32)
+  return (mesh.vertices[used], index[faces].astype(np.int32), np.asarray(colors)[used],
+          mesh.normals[used])
+
+
+def srgb_to_linear(colors: np.ndarray) -> np.ndarray:
+  """`(..., 3) uint8` sRGB → `(..., 3) uint8` linear-light values (glTF vertex colours are
+  linear; the page turns them back into sRGB when it draws them)."""
+  c = np.asarray(colors, np.float64) / 255.0
+  linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+  return np.round(linear * 255).astype(np.uint8)
+
+
+def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray,
+             normals: Optional[np.ndarray] = None) -> bytes:
+  """A binary glTF (GLB) of a mesh with per-vertex sRGB `colors (p, 3) uint8`.
+
+  Written by trimesh, with one material added: not metallic and fully rough (glTF's default
+  material is metallic, which looks black without an environment map), single-sided (faces
+  point to where the camera was, so the inside of a room shows through its walls from outside).
+  """
+  import json
+  import struct
+  import trimesh
+  rgba = np.concatenate([srgb_to_linear(colors),
+                         np.full((len(colors), 1), 255, np.uint8)], axis=1)
+  kwargs = {} if normals is None else {"vertex_normals": np.asarray(normals, np.float64)}
+  glb = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                        vertex_colors=rgba, process=False, **kwargs).export(file_type="glb")
+  json_length, json_type = struct.unpack_from("<II", glb, 12)
+  if glb[:4] != b"glTF" or json_type != 0x4E4F534A:
+    raise ValueError("trimesh wrote an unexpected GLB layout")
+  doc = json.loads(glb[20:20 + json_length])
+  doc["materials"] = [{"name": "vertex_colors", "doubleSided": False,
+                       "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                                                "metallicFactor": 0.0,
+                                                "roughnessFactor": 1.0}}]
+  for mesh in doc.get("meshes", []):
+    for primitive in mesh["primitives"]:
+      primitive["material"] = 0
+  text = json.dumps(doc, separators=(",", ":")).encode()
+  text += b" " * (-len(text) % 4)
+  rest = glb[20 + json_length:]
+  return (struct.pack("<4sII", b"glTF", 2, 20 + len(text) + len(rest))
+          + struct.pack("<II", len(text), 0x4E4F534A) + text + rest)
+
+
+# Voxels as cubes or points --------------------------------------------------------------------
+
+
 DRAW_CHOICES = ("auto", "cubes", "points")
 
 
@@ -405,8 +674,10 @@ def representation(num_voxels: int, max_cubes: int, choice: str = "auto") -> str
 
 
 def height_range(maps: Sequence[ViewMap], up_axis: int = 2) -> tuple:
-  """`(lo, hi)`: the lowest and highest voxel centre of all maps along the up axis."""
+  """`(lo, hi)`: the lowest and highest voxel centre (or mesh vertex) of all maps along the up
+  axis."""
   heights = [m.centers[:, up_axis] for m in maps if len(m)]
+  heights += [m.mesh.vertices[:, up_axis] for m in maps if m.mesh is not None]
   if not heights:
     return 0.0, 1.0
   all_h = np.concatenate(heights)
@@ -416,6 +687,7 @@ def height_range(maps: Sequence[ViewMap], up_axis: int = 2) -> tuple:
 def initial_camera(maps: Sequence[ViewMap], up_axis: int = 2) -> tuple:
   """`(position, look_at)` of a camera that sees all maps from above one corner."""
   points = [m.centers for m in maps if len(m)]
+  points += [m.mesh.vertices for m in maps if m.mesh is not None]
   if not points:
     return np.array([3.0, -3.0, 3.0]), np.zeros(3)
   pts = np.concatenate(points)
