@@ -34,15 +34,24 @@ def _plane_frame(num_classes, height=SIZE[0], width=SIZE[1]):
   return jf.Frame(np.full((height, width), 1.95, np.float32), T, probs.astype(np.float32), var)
 
 
-def save_floor_maps(root) -> list:
+# A 5 cm geometry layer for the floor: its ~4 × 3 m patch takes ~160 blocks of 40 cm.
+GEOMETRY = jf.TSDFConfig(voxel_size=0.05, capacity=2**9)
+
+
+def save_floor_maps(root, geometry=None) -> list:
   """Bayes and D+R maps of one floor frame (stripes of background, chair, plant, TV) with
-  poses and a GT map beside them; returns the map paths."""
+  poses and a GT map beside them (and a geometry layer when `geometry`, a TSDFConfig, is
+  given); returns the map paths. As in the demo, the geometry layer is fused once (with the
+  first rule) and given to both maps: one compilation fewer."""
   frame = _plane_frame(len(NAMES))
-  out = []
+  out, layer = [], None
   for name in ("bayes", "robust_dr"):
     rule = jf.rules.by_name(name)
-    state = jf.init_map(capacity=4096, num_classes=len(NAMES), voxel_size=0.1, rule=rule)
+    state = jf.init_map(capacity=4096, num_classes=len(NAMES), voxel_size=0.1, rule=rule,
+                        geometry=geometry if layer is None else None)
     state = jf.fuse_frame(state, frame, CAMERA, rule)
+    layer = state.geometry if layer is None else layer
+    state = state.replace(geometry=layer)
     path = str(root / f"floor_{name}.npz")
     io.save_map(path, state, rule, class_names=NAMES, extra={"sequence": "floor"},
                 poses=np.stack([frame.T_world_cam] * 3), camera=CAMERA, image_size=SIZE)
@@ -153,5 +162,134 @@ def test_sequence_control_switches_between_sequences(maps):
     c["map"].value = maps[0].name
     c["sequence"].value = "hall"   # Bayesian is not there: its only map is shown
     assert c["map"].value == other[1].name and viewer.last_drawn["map"] == other[1].path
+  finally:
+    viewer.stop()
+
+
+# Maps with a geometry layer: the mesh --------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def mesh_maps(tmp_path_factory):
+  return sd.load_maps(save_floor_maps(tmp_path_factory.mktemp("mesh_maps"), geometry=GEOMETRY))
+
+
+def _record_glbs(viewer) -> list:
+  """The GLB payloads the viewer sends from now on (`scene.add_glb` wrapped)."""
+  sent, add_glb = [], viewer.server.scene.add_glb
+
+  def recording(name, glb, **kwargs):
+    sent.append((name, glb))
+    return add_glb(name, glb, **kwargs)
+
+  viewer.server.scene.add_glb = recording
+  return sent
+
+
+def _glb_faces(glb) -> int:
+  import io as io_lib
+  import trimesh
+  scene = trimesh.load(io_lib.BytesIO(glb), file_type="glb", process=False)
+  return sum(len(g.faces) for g in scene.geometry.values())
+
+
+def test_show_switches_between_the_mesh_and_the_voxels(mesh_maps):
+  bayes, dr = mesh_maps
+  assert bayes.mesh is not None and bayes.mesh.num_faces > 0
+  faces = bayes.mesh.num_faces
+  viewer = server.MapViewer(mesh_maps, port=0)
+  try:
+    c = viewer.controls
+    sent = _record_glbs(viewer)
+    assert c["show"].visible and c["show"].options == ("mesh", "voxels", "mesh + voxels")
+    # A map with a mesh opens on its mesh, every face of it, and no voxel.
+    assert c["show"].value == "mesh"
+    assert viewer.last_drawn == {"map": bayes.path, "mode": "class", "kind": None, "count": 0,
+                                 "mesh": faces}
+    assert not c["draw"].visible   # the voxels' control hides with them
+    c["show"].value = "voxels"
+    assert viewer.last_drawn == {"map": bayes.path, "mode": "class", "kind": "cubes",
+                                 "count": len(bayes), "mesh": 0}
+    assert c["draw"].visible and sent == []
+    c["show"].value = "mesh + voxels"
+    assert viewer.last_drawn == {"map": bayes.path, "mode": "class", "kind": "cubes",
+                                 "count": len(bayes), "mesh": faces}
+    assert [name for name, _ in sent] == ["/mesh"] and _glb_faces(sent[0][1]) == faces
+    # The same mesh is not sent again for a redraw that does not change it.
+    c["trajectory"].value = False
+    assert len(sent) == 1
+    # Hiding a class drops its faces (by the face's class) from the mesh and its voxels.
+    k = int(np.bincount(bayes.mesh.face_labels[bayes.mesh.face_labels >= 0]).argmax())
+    c["hide"][NAMES[k]].value = True
+    kept = int(np.sum(bayes.mesh.face_labels != k))
+    assert 0 < kept < faces
+    assert viewer.last_drawn["mesh"] == kept == int(
+        sd.mesh_face_mask(bayes, hidden_classes=[k]).sum())
+    assert viewer.last_drawn["count"] == int(np.sum(bayes.labels != k))
+    assert len(sent) == 2 and _glb_faces(sent[1][1]) == kept
+    # A height cut below the floor (at z ≈ 0.05 m) leaves nothing.
+    c["height"].value = c["height"].min
+    assert c["height"].min < 0.04 and viewer.last_drawn["mesh"] == 0
+    assert viewer.last_drawn["count"] == 0
+  finally:
+    viewer.stop()
+
+
+def test_colour_modes_follow_what_is_shown(mesh_maps):
+  bayes, dr = mesh_maps
+  viewer = server.MapViewer(mesh_maps, port=0)
+  try:
+    c = viewer.controls
+    sent = _record_glbs(viewer)
+    gt, hits = sd.COLOR_MODES["correct"], sd.COLOR_MODES["hits"]
+    alpha = sd.COLOR_MODES["confidence"]
+    # Bayes: the mesh has a max posterior but no hit count; the voxels the reverse.
+    assert c["color"].options == ("class", "entropy", "confidence (max posterior)", gt)
+    c["show"].value = "voxels"
+    assert c["color"].options == ("class", "entropy", hits, gt)
+    c["show"].value = "mesh + voxels"
+    assert c["color"].options == ("class", "entropy", gt)
+    for show in sd.SHOW_CHOICES:
+      c["show"].value = show
+      assert c["color"].options == tuple(sd.mode_titles(bayes, show).values())
+    # D+R: ᾱ on the voxels; the mode is kept when what is shown changes, under its new title.
+    c["map"].value = dr.name
+    c["show"].value = "voxels"
+    c["color"].value = alpha
+    assert viewer.last_drawn["mode"] == "confidence" and viewer.last_drawn["mesh"] == 0
+    del sent[:]
+    c["show"].value = "mesh"
+    assert c["color"].value == "confidence (max posterior)"
+    assert viewer.last_drawn == {"map": dr.path, "mode": "confidence", "kind": None,
+                                 "count": 0, "mesh": dr.mesh.num_faces}
+    assert len(sent) == 1   # drawn once, in the mode kept (not first in class)
+    c["show"].value = "mesh + voxels"
+    assert c["color"].value == "confidence (mesh: max posterior, voxels: ᾱ)"
+    assert viewer.last_drawn["mode"] == "confidence" and viewer.last_drawn["count"] == len(dr)
+    # Bayes has no ᾱ: with both layers shown its colour falls back to class.
+    c["map"].value = bayes.name
+    assert viewer.last_drawn["mode"] == "class" and c["color"].value == "class"
+    c["color"].value = gt
+    assert viewer.last_drawn["mode"] == "correct"
+  finally:
+    viewer.stop()
+
+
+def test_maps_without_a_mesh_show_their_voxels(maps, mesh_maps):
+  import dataclasses
+  plain = [dataclasses.replace(m, sequence="plain", path=m.path + "#plain") for m in maps]
+  viewer = server.MapViewer([*mesh_maps, *plain], port=0)
+  try:
+    c = viewer.controls
+    assert c["show"].visible and c["show"].value == "mesh"
+    c["sequence"].value = "plain"
+    assert viewer.last_drawn == {"map": plain[0].path, "mode": "class", "kind": "cubes",
+                                 "count": len(plain[0])}   # no "mesh": this map has none
+    assert c["color"].options == tuple(sd.COLOR_MODES[m] for m in sd.color_modes(plain[0]))
+  finally:
+    viewer.stop()
+  viewer = server.MapViewer(maps, port=0)
+  try:
+    assert not viewer.controls["show"].visible and viewer.controls["show"].value == "voxels"
   finally:
     viewer.stop()

@@ -1,9 +1,10 @@
 """The web viewer of saved maps, built on viser (the optional `viewer` extra).
 
-`MapViewer` serves one page: the voxels of the chosen map as cubes (points beyond
-`max_cubes`), a colour mode with its legend, toggles to hide classes, a height cut, and the
-camera trajectory as frustums. Switching maps replaces the voxels only, so the camera stays
-where the user left it. What is drawn is computed by `scene_data`; this module only shows it.
+`MapViewer` serves one page: the mesh of the chosen map (when it has a geometry layer) and/or
+its voxels as cubes (points beyond `max_cubes`), a colour mode with its legend, toggles to hide
+classes, a height cut, and the camera trajectory as frustums. Switching maps replaces the mesh
+and voxels only, so the camera stays where the user left it. What is drawn is computed by
+`scene_data`; this module only shows it.
 """
 
 import signal
@@ -31,9 +32,14 @@ class MapViewer:
 
   Attributes:
     server: the `viser.ViserServer`.
-    controls: the GUI handles by role — "sequence", "map", "color", "draw" (dropdowns), "height"
-      (slider), "trajectory" (checkbox) and "hide" (class name → checkbox). Setting a
-      handle's `value` from Python redraws the scene as a click in the page does.
+    controls: the GUI handles by role — "sequence", "map", "show", "color", "draw"
+      (dropdowns), "height" (slider), "trajectory" (checkbox) and "hide" (class name →
+      checkbox). Setting a handle's `value` from Python redraws the scene as a click in the
+      page does. "show" (mesh / voxels / both) is visible only when some map has a mesh; a
+      map without one shows its voxels whatever it says.
+    last_drawn: what the last redraw drew: "map" (path), "mode", "kind" ("cubes", "points",
+      or None when the voxels are not shown) and "count" (voxels drawn); for a map with a
+      mesh also "mesh" (faces drawn, 0 when the mesh is not shown).
   """
 
   def __init__(self, maps: Sequence[sd.ViewMap], *, host: str = "127.0.0.1", port: int = 8080,
@@ -52,6 +58,8 @@ class MapViewer:
     self._lock = threading.RLock()
     self._trajectory_of = None   # path of the map whose trajectory is drawn
     self._trajectory_root = None
+    self._mesh_drawn = None   # what the mesh node shows now (skips resending the same GLB)
+    self._quiet = False   # True while _map_changed sets the colour control (it redraws after)
     self.last_drawn = {}
     self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
     scene = self.server.scene
@@ -85,9 +93,16 @@ class MapViewer:
     c["sequence"] = gui.add_dropdown("Sequence", sequences, initial_value=sequences[0],
                                      visible=len(sequences) > 1)
     c["map"] = gui.add_dropdown("Map", list(first), initial_value=next(iter(first)))
-    modes = sd.color_modes(first[next(iter(first))])
-    c["color"] = gui.add_dropdown("Colour by", [sd.COLOR_MODES[m] for m in modes],
-                                  initial_value=sd.COLOR_MODES["class"])
+    any_mesh = any(m.mesh is not None for m in self._all)
+    c["show"] = gui.add_dropdown("Show", list(sd.SHOW_CHOICES),
+                                 initial_value="mesh" if any_mesh else "voxels",
+                                 visible=any_mesh,
+                                 hint="the surface of the geometry layer, the semantic voxels, "
+                                      "or both (maps without a mesh show their voxels)")
+    titles = sd.mode_titles(first[next(iter(first))], c["show"].value)
+    self._last_titles = titles
+    c["color"] = gui.add_dropdown("Colour by", list(titles.values()),
+                                  initial_value=titles["class"])
     c["draw"] = gui.add_dropdown("Draw as", list(sd.DRAW_CHOICES), initial_value="auto",
                                  hint=f"auto: cubes up to {self._max_cubes} voxels, then points")
     self._legend = gui.add_html("")
@@ -108,8 +123,9 @@ class MapViewer:
 
     c["sequence"].on_update(lambda _: self._sequence_changed())
     c["map"].on_update(lambda _: self._map_changed())
+    c["show"].on_update(lambda _: self._map_changed())
     for handle in [c["color"], c["draw"], c["height"], c["trajectory"], *c["hide"].values()]:
-      handle.on_update(lambda _: self.redraw())
+      handle.on_update(lambda _: self._control_changed())
 
   def _sequence_changed(self):
     with self._lock:
@@ -121,18 +137,38 @@ class MapViewer:
         self.controls["map"].options = names   # moves the value, which calls _map_changed
 
   def _map_changed(self):
+    """The map or what is shown changed: offer the colour modes of what is shown now (the
+    mode is kept when it is still offered, under its new title where that changes; else it
+    falls back to class), then redraw once."""
     with self._lock:
-      modes = [sd.COLOR_MODES[m] for m in sd.color_modes(self.current_map())]
-      if self.controls["color"].value in modes:
-        self.controls["color"].options = modes
+      mode = self._mode_of_title(self._last_titles, self.controls["color"].value)
+      titles = sd.mode_titles(self.current_map(), self.controls["show"].value)
+      self._last_titles = titles
+      color = self.controls["color"]
+      # Changing the options can move the value (to the first option) and a new title moves
+      # it again: each move would redraw (and resend the mesh) on its own.
+      self._quiet = True
+      try:
+        if tuple(color.options) != tuple(titles.values()):
+          color.options = list(titles.values())
+        color.value = titles.get(mode, titles["class"])
+      finally:
+        self._quiet = False
+      self.redraw()
+
+  def _control_changed(self):
+    with self._lock:
+      if not self._quiet:
         self.redraw()
-      else:
-        self.controls["color"].options = modes   # falls back to "class" and redraws
+
+  @staticmethod
+  def _mode_of_title(titles: dict, title: str) -> Optional[str]:
+    return next((k for k, v in titles.items() if v == title), None)
 
   def _mode(self, m: sd.ViewMap) -> str:
-    title = self.controls["color"].value
-    mode = next(k for k, v in sd.COLOR_MODES.items() if v == title)
-    return mode if mode in sd.color_modes(m) else "class"
+    titles = sd.mode_titles(m, self.controls["show"].value)
+    mode = self._mode_of_title(titles, self.controls["color"].value)
+    return mode if mode is not None else "class"
 
   def redraw(self):
     """Draws the current map with the current colour mode, classes and height cut."""
@@ -141,30 +177,71 @@ class MapViewer:
       mode = self._mode(m)
       hidden = [i for i, box in enumerate(self.controls["hide"].values()) if box.value]
       cut = float(self.controls["height"].value)
-      keep = sd.visible_mask(m, hidden_classes=hidden,
-                             max_height=None if cut >= self._height_max else cut,
-                             up_axis=_UP_AXIS)
-      colors = sd.voxel_colors(m, mode, self._palette)[keep]
-      centers = m.centers[keep]
-      kind = sd.representation(len(centers), self._max_cubes, self.controls["draw"].value)
-      scene = self.server.scene
-      if len(centers) == 0:
-        scene.remove_by_name("/voxels")
-      elif kind == "cubes":
-        scene.add_batched_meshes_simple(
-            "/voxels", _BOX_VERTICES * m.voxel_size, _BOX_FACES,
-            batched_wxyzs=np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0], np.float32),
-                                          (len(centers), 4)),
-            batched_positions=centers, batched_colors=colors, flat_shading=True, lod="off",
-            cast_shadow=False, receive_shadow=False)
+      max_height = None if cut >= self._height_max else cut
+      show_mesh, show_voxels = sd.shown_layers(m, self.controls["show"].value)
+      self.controls["draw"].visible = show_voxels
+      faces = self._draw_mesh(m, mode, hidden, max_height) if show_mesh else self._remove_mesh()
+      legend, status = [], []
+      if show_mesh:
+        legend += sd.mesh_legend(m, mode, self._palette)
+        status.append(f"mesh: {faces} of {m.mesh.num_faces} faces")
+      if show_voxels:
+        kind, count = self._draw_voxels(m, mode, hidden, max_height)
+        voxel_legend = sd.legend(m, mode, self._palette)
+        legend += [("voxels", None), *voxel_legend] if show_mesh else voxel_legend
+        status.append(f"{count} of {len(m)} voxels ({m.voxel_size:g} m), drawn as {kind}")
       else:
-        scene.add_point_cloud("/voxels", centers, colors, point_size=m.voxel_size,
-                              point_shape="square", point_shading="flat", precision="float32")
-      self._legend.content = sd.legend_html(sd.legend(m, mode, self._palette))
-      self._status.content = (f"{len(centers)} of {len(m)} voxels ({m.voxel_size:g} m), "
-                              f"drawn as {kind}")
+        self.server.scene.remove_by_name("/voxels")
+        kind, count = None, 0
+      self._legend.content = sd.legend_html(legend)
+      self._status.content = "; ".join(status)
       self._draw_trajectory(m)
-      self.last_drawn = {"map": m.path, "mode": mode, "kind": kind, "count": int(len(centers))}
+      self.last_drawn = {"map": m.path, "mode": mode, "kind": kind, "count": int(count)}
+      if m.mesh is not None:
+        self.last_drawn["mesh"] = int(faces)
+
+  def _draw_mesh(self, m: sd.ViewMap, mode: str, hidden: list, max_height) -> int:
+    """Draws the mesh's visible faces with per-vertex colours; returns how many."""
+    key = (m.path, mode, tuple(hidden), max_height)
+    keep = sd.mesh_face_mask(m, hidden_classes=hidden, max_height=max_height,
+                             up_axis=_UP_AXIS)
+    if key == self._mesh_drawn:
+      return int(keep.sum())
+    vertices, faces, colors, normals = sd.mesh_part(m, keep,
+                                                    sd.mesh_colors(m, mode, self._palette))
+    if len(faces) == 0:
+      self._remove_mesh()
+    else:
+      self.server.scene.add_glb("/mesh", sd.mesh_glb(vertices, faces, colors, normals),
+                                cast_shadow=False, receive_shadow=False)
+    self._mesh_drawn = key
+    return int(len(faces))
+
+  def _remove_mesh(self) -> int:
+    self.server.scene.remove_by_name("/mesh")
+    self._mesh_drawn = None
+    return 0
+
+  def _draw_voxels(self, m: sd.ViewMap, mode: str, hidden: list, max_height) -> tuple:
+    """Draws the visible voxels as cubes or points; returns `(kind, count)`."""
+    keep = sd.visible_mask(m, hidden_classes=hidden, max_height=max_height, up_axis=_UP_AXIS)
+    colors = sd.voxel_colors(m, mode, self._palette)[keep]
+    centers = m.centers[keep]
+    kind = sd.representation(len(centers), self._max_cubes, self.controls["draw"].value)
+    scene = self.server.scene
+    if len(centers) == 0:
+      scene.remove_by_name("/voxels")
+    elif kind == "cubes":
+      scene.add_batched_meshes_simple(
+          "/voxels", _BOX_VERTICES * m.voxel_size, _BOX_FACES,
+          batched_wxyzs=np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0], np.float32),
+                                        (len(centers), 4)),
+          batched_positions=centers, batched_colors=colors, flat_shading=True, lod="off",
+          cast_shadow=False, receive_shadow=False)
+    else:
+      scene.add_point_cloud("/voxels", centers, colors, point_size=m.voxel_size,
+                            point_shape="square", point_shading="flat", precision="float32")
+    return kind, int(len(centers))
 
   def _draw_trajectory(self, m: sd.ViewMap):
     """Frustums along the map's saved camera path, under one node the checkbox hides."""
