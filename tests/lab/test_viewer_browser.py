@@ -17,7 +17,7 @@ from jaxfusion.datasets.classes import CHAIR, PLANT, TV   # noqa: E402
 from jaxfusion.lab.viewer import browser   # noqa: E402
 from jaxfusion.lab.viewer import scene_data as sd   # noqa: E402
 from jaxfusion.lab.viewer import server   # noqa: E402
-from tests.lab.test_viewer_server import save_floor_maps   # noqa: E402
+from tests.lab.test_viewer_server import GEOMETRY, save_floor_maps   # noqa: E402
 
 WIDTH, HEIGHT = 1280, 800
 COLORS = np.asarray(datasets.CLASS_COLORS, np.int64)
@@ -26,21 +26,36 @@ ABSENT = (1, 3, 5)           # bottle, table, sofa
 ENOUGH = 40                  # pixels of a colour for it to count as on the picture
 
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory):
+def _open(tmp_path_factory, geometry=None):
+  """`(viewer, page, shots folder)` of the floor maps (with a geometry layer if given)."""
   if browser.find_chromium() is None:
     reason = "chromium is not installed (apt-get install chromium; .ci/run installs it)"
     if os.environ.get("JAXFUSION_REQUIRE_BROWSER") == "1":
       pytest.fail(reason)
     pytest.skip(reason)
-  maps = sd.load_maps(save_floor_maps(tmp_path_factory.mktemp("maps")))
+  maps = sd.load_maps(save_floor_maps(tmp_path_factory.mktemp("maps"), geometry=geometry))
   viewer = server.MapViewer(maps, port=0)
   try:
     page = browser.HeadlessPage(viewer.url, width=WIDTH, height=HEIGHT)
   except BaseException:
     viewer.stop()
     raise
-  yield viewer, page, tmp_path_factory.mktemp("shots")
+  return viewer, page, tmp_path_factory.mktemp("shots")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+  viewer, page, shots = _open(tmp_path_factory)
+  yield viewer, page, shots
+  page.close()
+  viewer.stop()
+
+
+@pytest.fixture(scope="module")
+def mesh_session(tmp_path_factory):
+  """The floor maps with a geometry layer: the viewer opens on their mesh."""
+  viewer, page, shots = _open(tmp_path_factory, geometry=GEOMETRY)
+  yield viewer, page, shots
   page.close()
   viewer.stop()
 
@@ -116,28 +131,72 @@ def _hue(rgb):
   return np.array([colorsys.rgb_to_hsv(*(c / 255.0))[0] * 360 for c in rgb])
 
 
-def test_cubes_keep_the_class_hues(session):
-  viewer, page, shots = session
-  _show(viewer, color="class", draw="cubes")   # lit and tone-mapped: compare hues
-  hued = {CHAIR: 0.0, PLANT: 120.0, TV: 240.0}
-  np.testing.assert_allclose(_hue(COLORS[list(hued)]), list(hued.values()), atol=1.0)
+HUED = {CHAIR: 0.0, PLANT: 120.0, TV: 240.0}   # the stripes' classes of pure hue
+
+
+def _lit_class_hues_problem(what):
+  """A check that the picture has lit (not exactly palette-coloured) pixels of each of the
+  chair, plant and TV hues, as lit, tone-mapped surfaces of those classes give."""
 
   def problem(pixels):
     saturated = pixels[(pixels.max(1) - pixels.min(1)) >= 40]
     if len(saturated) == 0:
-      return "no coloured cube on the picture"
+      return f"no coloured {what} on the picture"
     hue = _hue(saturated)
-    ref = np.array(list(hued.values()))
+    ref = np.array(list(HUED.values()))
     nearest = np.argmin(np.abs((hue[:, None] - ref[None] + 180) % 360 - 180), axis=1)
     counts = np.bincount(nearest, minlength=len(ref))
     exact_red = _count(pixels, COLORS[CHAIR])
     if counts.min() < ENOUGH or exact_red > counts[0] / 2:
-      return (f"cube hues near chair/plant/TV: {counts.tolist()}; exactly chair-red "
+      return (f"{what} hues near chair/plant/TV: {counts.tolist()}; exactly chair-red "
               f"(unlit) pixels: {exact_red}")
     return ""
 
-  _wait(page, problem, shots / "class_cubes.png")
+  return problem
+
+
+def test_cubes_keep_the_class_hues(session):
+  viewer, page, shots = session
+  _show(viewer, color="class", draw="cubes")   # lit and tone-mapped: compare hues
+  np.testing.assert_allclose(_hue(COLORS[list(HUED)]), list(HUED.values()), atol=1.0)
+  _wait(page, _lit_class_hues_problem("cube"), shots / "class_cubes.png")
   assert viewer.last_drawn["kind"] == "cubes"
+
+
+def _lit_colours(pixels):
+  """`{class: (r, g, b)}`: the most common colour among pixels of each of the HUED hues."""
+  saturated = pixels[(pixels.max(1) - pixels.min(1)) >= 40]
+  hue = _hue(saturated)
+  out = {}
+  for k, ref in HUED.items():
+    near = saturated[np.abs((hue - ref + 180) % 360 - 180) < 20]
+    colours, counts = np.unique(near, axis=0, return_counts=True)
+    out[k] = colours[np.argmax(counts)]
+  return out
+
+
+def test_page_shows_the_mesh_and_switches_to_the_voxels(mesh_session):
+  viewer, page, shots = mesh_session
+  m = viewer.current_map()
+  assert viewer.controls["show"].value == "mesh"   # a map with a mesh opens on it
+  assert viewer.last_drawn["mesh"] == m.mesh.num_faces and viewer.last_drawn["count"] == 0
+  # The lit mesh, coloured by class, has the hues of the floor's stripes ...
+  mesh = _scene(_wait(page, _lit_class_hues_problem("mesh"), shots / "mesh.png"))
+  # ... and, facing up under the same lights, the colours of the cubes' tops.
+  _show(viewer, show="voxels", draw="cubes")
+  assert viewer.last_drawn["mesh"] == 0 and viewer.last_drawn["kind"] == "cubes"
+  cubes = _scene(_wait(page, _lit_class_hues_problem("cube"), shots / "mesh_to_cubes.png"))
+  on_mesh = {datasets.CLASS_NAMES[k]: _count(mesh, c, tol=6)
+             for k, c in _lit_colours(cubes).items()}
+  assert min(on_mesh.values()) >= ENOUGH, (
+      f"pixels of the cubes' lit class colours {_lit_colours(cubes)} on the mesh: {on_mesh}; "
+      f"the mesh's own: {_lit_colours(mesh)}")
+  # The voxels as (unlit) points: the palette's exact colours, a changed picture.
+  _show(viewer, draw="points")
+  voxels = _scene(_wait(page, _class_colours_problem, shots / "mesh_to_points.png"))
+  changed = np.any(mesh != voxels, axis=1).mean()
+  assert changed > 0.05, f"only {changed:.2%} of the scene's pixels changed"
+  assert _class_colours_problem(mesh) != ""   # the mesh is lit: not the exact palette
 
 
 def test_switching_maps_keeps_the_camera(session):

@@ -3,7 +3,6 @@
 
 import dataclasses
 import io as io_lib
-import math
 import os
 import sys
 
@@ -424,21 +423,6 @@ def test_mesh_faces_by_class_and_height_and_their_part():
   np.testing.assert_allclose(sd.initial_camera([m])[1], [1.0, 0.5, 1.0])
 
 
-def _srgb_to_linear_by_hand(v):
-  c = v / 255
-  return c / 12.92 if c <= 0.04045 else math.pow((c + 0.055) / 1.055, 2.4)
-
-
-def test_srgb_to_linear_follows_the_srgb_formula():
-  values = np.arange(256, dtype=np.uint8)
-  expected = [round(255 * _srgb_to_linear_by_hand(int(v))) for v in values]
-  np.testing.assert_array_equal(sd.srgb_to_linear(values[:, None].repeat(3, 1)),
-                                np.array(expected)[:, None].repeat(3, 1))
-  got = sd.srgb_to_linear(np.array([[0, 10, 128], [200, 255, 11]], np.uint8))
-  np.testing.assert_array_equal(got, [[0, 1, 55], [147, 255, 1]])   # by hand
-  assert got.dtype == np.uint8
-
-
 def test_mesh_glb_round_trips_with_a_rough_material():
   import json
   import struct
@@ -453,9 +437,9 @@ def test_mesh_glb_round_trips_with_a_rough_material():
   np.testing.assert_allclose(mesh.vertices, MESH_VERTICES)
   np.testing.assert_array_equal(mesh.faces, MESH_FACES)
   np.testing.assert_allclose(mesh.vertex_normals, normals, atol=1e-6)
-  # glTF vertex colours are linear: sRGB 128 → 55, 10 → 1 (the page turns them back).
-  np.testing.assert_array_equal(mesh.visual.vertex_attributes["color"][:, :3],
-                                [[255, 0, 0], [0, 255, 0], [0, 0, 255], [55, 55, 55], [1, 2, 3]])
+  # The sRGB colours as they are (the page takes them for sRGB, as the cubes' colours).
+  np.testing.assert_array_equal(mesh.visual.vertex_attributes["color"],
+                                np.concatenate([colors, np.full((5, 1), 255)], axis=1))
   material = mesh.visual.material
   assert material.metallicFactor == 0.0 and material.roughnessFactor == 1.0
   json_length = struct.unpack_from("<I", glb, 12)[0]

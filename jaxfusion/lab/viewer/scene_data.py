@@ -610,26 +610,21 @@ def mesh_part(m: ViewMap, keep: np.ndarray, colors: np.ndarray) -> tuple:
           mesh.normals[used])
 
 
-def srgb_to_linear(colors: np.ndarray) -> np.ndarray:
-  """`(..., 3) uint8` sRGB → `(..., 3) uint8` linear-light values (glTF vertex colours are
-  linear; the page turns them back into sRGB when it draws them)."""
-  c = np.asarray(colors, np.float64) / 255.0
-  linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-  return np.round(linear * 255).astype(np.uint8)
-
-
 def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray,
              normals: Optional[np.ndarray] = None) -> bytes:
-  """A binary glTF (GLB) of a mesh with per-vertex sRGB `colors (p, 3) uint8`.
+  """A binary glTF (GLB) of a mesh with per-vertex sRGB `colors (p, 3) uint8`, for the page.
 
   Written by trimesh, with one material added: not metallic and fully rough (glTF's default
   material is metallic, which looks black without an environment map), single-sided (faces
   point to where the camera was, so the inside of a room shows through its walls from outside).
+  The colours are written as they are: the viewer's page takes a GLB's vertex colours for sRGB
+  (as it does the cubes' colours), so a linear-light conversion would darken them twice (the
+  browser test compares the lit mesh with the lit cubes).
   """
   import json
   import struct
   import trimesh
-  rgba = np.concatenate([srgb_to_linear(colors),
+  rgba = np.concatenate([np.asarray(colors, np.uint8),
                          np.full((len(colors), 1), 255, np.uint8)], axis=1)
   kwargs = {} if normals is None else {"vertex_normals": np.asarray(normals, np.float64)}
   glb = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
