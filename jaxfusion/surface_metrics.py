@@ -109,14 +109,17 @@ def mesh_semantic_scores(vertices, faces, vertex_labels, gt_points, gt_labels, *
   when present in the GT or the prediction; mIoU is over classes present in the GT.
 
   Returns:
-    dict with `confusion (K, K)` (area, rows GT, columns predicted), `iou (K,)` (nan where the
-    class is in neither), `miou`, `accuracy` (area-weighted), and `vertex_accuracy` /
-    `vertex_miou` (each vertex counted once).
+    dict with `confusion (K, K)` (area, rows GT, columns predicted), `unlabelled (K,)` (area
+    of vertices without a label, by GT class), `iou (K,)` (nan where the class is in neither),
+    `miou`, `accuracy` (area-weighted), and `vertex_accuracy` / `vertex_miou` (each vertex
+    counted once). `padded_confusion(confusion, unlabelled)` stacks the first two so that sums
+    over sequences give the same IoU (`iou_from_padded`).
   """
   labels = np.asarray(vertex_labels, np.int64)
   gt_labels = np.asarray(gt_labels, np.int64)
   if len(labels) == 0:
-    return {"confusion": np.zeros((num_classes, num_classes)), "iou": np.full(num_classes, np.nan),
+    return {"confusion": np.zeros((num_classes, num_classes)),
+            "unlabelled": np.zeros(num_classes), "iou": np.full(num_classes, np.nan),
             "miou": float("nan"), "accuracy": float("nan"), "vertex_accuracy": float("nan"),
             "vertex_miou": float("nan")}
   _, nearest = _kdtree(gt_points).query(np.asarray(vertices, np.float64))
@@ -130,15 +133,37 @@ def mesh_semantic_scores(vertices, faces, vertex_labels, gt_points, gt_labels, *
     np.add.at(confusion, (truth[ok], labels[ok]), weight[ok])
     missed = np.zeros(num_classes)
     np.add.at(missed, truth[keep & ~ok], weight[keep & ~ok])
-    tp = np.diag(confusion)
-    denominator = confusion.sum(0) + confusion.sum(1) - tp + missed
-    iou = np.where(denominator > 0, tp / np.where(denominator > 0, denominator, 1), np.nan)
-    present = confusion.sum(1) + missed > 0
-    total = confusion.sum() + missed.sum()
-    return confusion, iou, float(np.nanmean(iou[present])) if present.any() else float("nan"), (
-        float(tp.sum() / total) if total > 0 else float("nan"))
+    iou, miou, accuracy = iou_from_padded(padded_confusion(confusion, missed))
+    return confusion, missed, iou, miou, accuracy
 
-  confusion, iou, miou, accuracy = scores(vertex_areas(vertices, faces))
-  _, _, vertex_miou, vertex_accuracy = scores(np.ones(len(labels)))
-  return {"confusion": confusion, "iou": iou, "miou": miou, "accuracy": accuracy,
-          "vertex_accuracy": vertex_accuracy, "vertex_miou": vertex_miou}
+  confusion, missed, iou, miou, accuracy = scores(vertex_areas(vertices, faces))
+  _, _, _, vertex_miou, vertex_accuracy = scores(np.ones(len(labels)))
+  return {"confusion": confusion, "unlabelled": missed, "iou": iou, "miou": miou,
+          "accuracy": accuracy, "vertex_accuracy": vertex_accuracy, "vertex_miou": vertex_miou}
+
+
+def padded_confusion(confusion: np.ndarray, unlabelled: np.ndarray) -> np.ndarray:
+  """`(K + 1, K + 1)`: `confusion (K, K)` with a column K for `unlabelled (K,)` (predicted as
+  "no label", which is never right) and an empty row K (no GT surface is "no label")."""
+  confusion = np.asarray(confusion, np.float64)
+  k = confusion.shape[0]
+  out = np.zeros((k + 1, k + 1))
+  out[:k, :k] = confusion
+  out[:k, k] = np.asarray(unlabelled, np.float64)
+  return out
+
+
+def iou_from_padded(padded: np.ndarray) -> tuple:
+  """`(iou (K,), miou, accuracy)` of a `padded_confusion`: IoU_c = TP / (GT_c + pred_c − TP)
+  (GT_c counts the class's unlabelled area), nan where class c is in neither; mIoU over the
+  classes present in the GT; accuracy = ΣTP / Σ GT area."""
+  padded = np.asarray(padded, np.float64)
+  k = padded.shape[0] - 1
+  tp = np.diag(padded)[:k]
+  gt, predicted = padded[:k].sum(1), padded[:, :k].sum(0)
+  denominator = gt + predicted - tp
+  iou = np.where(denominator > 0, tp / np.where(denominator > 0, denominator, 1), np.nan)
+  present = gt > 0
+  total = gt.sum()
+  return (iou, float(np.mean(iou[present])) if present.any() else float("nan"),
+          float(tp.sum() / total) if total > 0 else float("nan"))

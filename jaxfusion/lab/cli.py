@@ -12,6 +12,7 @@
   bench           time the embedded world's renderer (`lab.data`)
   view            interactive 3-D viewer of saved maps (`lab.viewer`)
   study           rules × shifts × layouts with bootstrap intervals (`lab.study`)
+  mesh-study      meshes vs the true surface: Chamfer, F-score, mesh mIoU (`lab.mesh_study`)
   sweep           one sequence fused with a grid of β in one call (`lab.tuning`)
   tune-beta       fit β by gradient descent on a calibration sequence (`lab.tuning`)
   tune-compare    which tuning objective tracks the mIoU optimum (`lab.tuning`)
@@ -30,8 +31,8 @@ import importlib
 import sys
 
 # The modules that register commands, in the order of `jaxfusion --help`.
-COMMAND_MODULES = ("demo", "maps", "data", "viewer.command", "study", "tuning", "simulate",
-                   "learning")
+COMMAND_MODULES = ("demo", "maps", "data", "viewer.command", "study", "mesh_study", "tuning",
+                   "simulate", "learning")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -89,3 +89,28 @@ def test_mesh_semantic_scores_weigh_by_area():
   iou0 = area[[0, 1, 2, 3]].sum() / area[[0, 1, 2, 3, 4]].sum()
   np.testing.assert_allclose(s["iou"], [iou0, iou1])
   np.testing.assert_allclose(s["vertex_accuracy"], 5 / 6)
+
+
+def test_unlabelled_vertices_count_as_missed_and_sums_of_padded_confusions_agree():
+  v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
+  f = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+  gt_points = np.array([[0.2, 0.5, 0], [1.8, 0.5, 0], [0.9, 0.5, 0]])
+  gt_labels = np.array([0, 1, 0])
+  area = sm.vertex_areas(v, f)
+  labels = np.array([0, 0, 0, 0, -1, 1])          # vertex 4 (GT class 1) has no label
+  s = sm.mesh_semantic_scores(v, f, labels, gt_points, gt_labels, num_classes=2)
+  np.testing.assert_allclose(s["unlabelled"], [0.0, area[4]])
+  np.testing.assert_allclose(s["iou"], [1.0, area[5] / (area[4] + area[5])])
+  np.testing.assert_allclose(s["accuracy"], 1 - area[4] / area.sum())
+  # Two "sequences": the padded confusions summed give the IoU of the pooled areas.
+  t = sm.mesh_semantic_scores(v, f, np.array([1, 1, 1, 1, 1, 1]), gt_points, gt_labels,
+                              num_classes=2)
+  pooled = (sm.padded_confusion(s["confusion"], s["unlabelled"])
+            + sm.padded_confusion(t["confusion"], t["unlabelled"]))
+  iou, miou, acc = sm.iou_from_padded(pooled)
+  class0 = area[:4].sum()                        # right in s, predicted 1 in t
+  class1 = area[4:].sum()
+  tp0, tp1 = class0, area[5] + class1
+  np.testing.assert_allclose(iou, [tp0 / (2 * class0), tp1 / (2 * class1 + class0)])
+  np.testing.assert_allclose(miou, np.mean(iou))
+  np.testing.assert_allclose(acc, (tp0 + tp1) / (2 * area.sum()))
