@@ -45,7 +45,8 @@ class Mesh(NamedTuple):
     faces: `(F, 3) int32` vertex indices; counter-clockwise seen from the free side (normals
       point out of the surface, towards where the camera was).
     normals: `(P, 3) float32` unit vertex normals (area-weighted face normals).
-    labels: `(P,) int32` class of each vertex in the semantic layer (−1: no semantic voxel).
+    labels: `(P,) int32` class of each vertex in the semantic layer (−1: no semantic voxel
+      at it nor, with `fill`, around it; docs/equations.md §9.2).
     confidence: `(P,) float32` the rule's confidence of that voxel (0 where none).
     entropy: `(P,) float32` posterior entropy in nats (log K where none).
     face_labels: `(F,) int32` class at each face's centroid (−1: none); `classes=` and
@@ -284,13 +285,16 @@ def _select_faces(mesh: Mesh, keep: np.ndarray) -> Mesh:
 
 
 def extract_mesh(state, *, min_weight: float = DEFAULT_MIN_WEIGHT,
-                 classes: Optional[Sequence[int]] = None, box: Optional[tuple] = None) -> Mesh:
+                 classes: Optional[Sequence[int]] = None, box: Optional[tuple] = None,
+                 fill: bool = True) -> Mesh:
   """The map's surface as a triangle mesh, each vertex labelled from the semantic layer.
 
   Args:
     state: a MapState with a geometry layer (`init_map(..., geometry=...)`), or a TSDFState
       alone (then the mesh has no labels).
     min_weight: cubes with a corner of lower TSDF weight are skipped.
+    fill: a vertex (or face centroid) whose semantic voxel is not in the map reads the nearest
+      of the 26 neighbouring voxels that is (docs/equations.md §9.2); False: it stays −1.
     classes: keep only the faces whose class (at the face's centroid) is one of these.
     box: `(min_xyz, max_xyz)` in metres: keep only the faces whose centroid lies in the box.
 
@@ -323,16 +327,7 @@ def extract_mesh(state, *, min_weight: float = DEFAULT_MIN_WEIGHT,
   if semantic is not None:
     centroids = vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3), np.float32)
     points = np.concatenate([vertices, centroids]).astype(np.float32)
-    q = readout.query(semantic, points) if len(points) else None
-    if q is None:
-      labels, confidence, entropy = (np.zeros(0, np.int32), np.zeros(0, np.float32),
-                                     np.zeros(0, np.float32))
-    else:
-      found = np.asarray(q.found)
-      posterior = np.asarray(q.posterior)
-      labels = np.where(found, posterior.argmax(-1), -1).astype(np.int32)
-      confidence = np.where(found, posterior.max(-1), 0.0).astype(np.float32)
-      entropy = np.asarray(q.entropy, np.float32)
+    labels, confidence, entropy = _read_labels(semantic, points, fill=fill)
     n = len(vertices)
     mesh = mesh._replace(labels=labels[:n], confidence=confidence[:n], entropy=entropy[:n],
                          face_labels=labels[n:])
@@ -345,6 +340,50 @@ def extract_mesh(state, *, min_weight: float = DEFAULT_MIN_WEIGHT,
       keep &= np.all((c >= bounds[0]) & (c <= bounds[1]), axis=-1)
     mesh = _select_faces(mesh, keep)
   return mesh
+
+
+# The 26 neighbours of a voxel, x-major then y then z (the tie order of §9.2).
+_VOXEL_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1)
+                              for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)], np.int32)
+
+
+def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
+  """`(labels (N,) int32, confidence (N,) float32, entropy (N,) float32)` of world points from
+  the semantic layer, as §9.2 states (with `fill`, an empty voxel reads its nearest neighbour
+  in the map)."""
+  from jaxfusion import camera as camera_lib   # pylint: disable=import-outside-toplevel
+  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
+  n = len(points)
+  if n == 0:
+    return np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32)
+  q = readout.query(semantic, points)
+  found = np.array(q.found)
+  posterior = np.array(q.posterior)
+  entropy = np.array(q.entropy, np.float32)
+  missing = np.flatnonzero(~found & np.all(np.isfinite(points), axis=1))
+  if fill and len(missing):
+    size = np.float32(semantic.voxel_size)
+    keys, _ = camera_lib.voxel_keys(points[missing], semantic.voxel_size)
+    keys = np.asarray(keys, np.int64)
+    centres = ((keys[:, None, :] + _VOXEL_NEIGHBOURS[None]).astype(np.float32) + 0.5) * size
+    near = readout.query(semantic, centres.reshape(-1, 3))
+    near_found = np.asarray(near.found).reshape(len(missing), len(_VOXEL_NEIGHBOURS))
+    # Vertices often lie exactly between two voxel centres: distances in float64, rounded to
+    # a micrometre, so that such ties go to the first neighbour whatever the rounding.
+    exact = (keys[:, None, :] + _VOXEL_NEIGHBOURS[None] + 0.5) * np.float64(size)
+    distance = np.round(np.linalg.norm(exact - points[missing][:, None, :].astype(np.float64),
+                                       axis=-1), 6)
+    distance = np.where(near_found, distance, np.inf)
+    best = np.argmin(distance, axis=1)                    # the first of equal distances
+    ok = np.isfinite(distance[np.arange(len(missing)), best])
+    pick = (np.arange(len(missing)) * len(_VOXEL_NEIGHBOURS) + best)[ok]
+    rows = missing[ok]
+    found[rows] = True
+    posterior[rows] = np.asarray(near.posterior).reshape(-1, posterior.shape[1])[pick]
+    entropy[rows] = np.asarray(near.entropy, np.float32).reshape(-1)[pick]
+  labels = np.where(found, posterior.argmax(-1), -1).astype(np.int32)
+  confidence = np.where(found, posterior.max(-1), 0.0).astype(np.float32)
+  return labels, confidence, entropy
 
 
 def mesh_by_class(state, *, min_weight: float = DEFAULT_MIN_WEIGHT) -> dict:
