@@ -63,8 +63,9 @@ class ViewMap:
     mesh: the surface of the map's geometry layer (`jaxfusion.mesh.Mesh`, extracted once at
       load, each vertex labelled from the semantic layer), or None for a map without a
       geometry layer (or one whose mesh has no face).
-    mesh_gt_labels: `(P,) int32` GT label of the semantic voxel each mesh vertex lies in (−1
-      where the map or the GT has no voxel there), or None without a mesh or a GT map.
+    mesh_gt_labels: `(P,) int32` GT label of the (semantic-size) voxel each mesh vertex lies
+      in (−1 where the GT has no voxel there or the vertex has no label), or None without a
+      mesh or a GT map.
   """
   path: str
   name: str
@@ -194,12 +195,12 @@ def gt_labels_for(coords: np.ndarray, gt: dict) -> np.ndarray:
 
 def vertex_gt_labels(vertices: np.ndarray, voxel_size, coords: np.ndarray,
                      gt_labels: np.ndarray) -> np.ndarray:
-  """`(P,) int32` GT label of the semantic voxel each point lies in (−1 where none).
+  """`(P,) int32` label of the voxel each point of `vertices (P, 3)` lies in (−1 where none).
 
   A point lies in the voxel `floor(p / voxel_size)`, computed by the engine's own
   `camera.voxel_keys` (the arithmetic `jf.query` — and so the mesh's vertex labels — uses);
-  that voxel is looked up among the map's voxel `coords (N, 3)`, whose GT labels are
-  `gt_labels (N,)`.
+  that voxel is looked up among the voxels `coords (M, 3) int` (unique) labelled
+  `gt_labels (M,)` — e.g. a GT voxel-label file's.
   """
   import jax.numpy as jnp
   from jaxfusion import camera, metrics
@@ -248,15 +249,18 @@ def load_view_map(path: str) -> ViewMap:
   extra = meta.get("extra") or {}
   sequence = extra.get("sequence") or os.path.splitext(os.path.basename(path))[0]
   gt_file = gt_path_for(path, extra.get("sequence"))
-  gt_labels = None if gt_file is None else gt_labels_for(voxels["coords"], load_gt(gt_file))
+  gt = None if gt_file is None else load_gt(gt_file)
+  gt_labels = None if gt is None else gt_labels_for(voxels["coords"], gt)
   trajectory = io.load_trajectory(path)
   mesh = mesh_gt = None
   if state.geometry is not None:
     mesh = jf.extract_mesh(state)
     if mesh.num_faces == 0:
       mesh = None
-    elif gt_labels is not None:
-      mesh_gt = vertex_gt_labels(mesh.vertices, state.voxel_size, voxels["coords"], gt_labels)
+    elif gt is not None:
+      # The GT where the vertex is, whichever voxel its label was read from (extract_mesh may
+      # fill a vertex outside the map from a neighbouring voxel).
+      mesh_gt = vertex_gt_labels(mesh.vertices, state.voxel_size, gt["coords"], gt["labels"])
       mesh_gt[mesh.labels < 0] = -1
   return ViewMap(
       path=path, name=map_name(rule), sequence=str(sequence), class_names=names,
