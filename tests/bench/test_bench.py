@@ -36,6 +36,7 @@ def test_numpy_peer_matches_the_engine(rule_name, aggregate):
   np.testing.assert_array_equal(out["hits"], peer.hits[:peer.size][order])
 
 
+@pytest.mark.slow
 def test_bench_suite_runs_on_a_tiny_configuration(tmp_path):
   from bench import suite  # pylint: disable=import-outside-toplevel
   results = suite.run(suite.Config.tiny(), out_dir=tmp_path)

@@ -51,6 +51,7 @@ def test_room_surface_is_on_the_room_and_culled_to_what_was_seen(frames):
   assert ok
 
 
+@pytest.mark.slow
 def test_a_row_runs_on_tiny_frames(frames):
   gt = geometry.room_surface(frames, spacing=0.05)
   row = geometry.measure(frames, 0.1, passes=1, mesh_repeats=1, gt_points=gt,

@@ -68,6 +68,7 @@ def test_sphere_and_cylinder_on_the_axis():
   np.testing.assert_allclose(np.asarray(hits.normal)[12, 16], [0, 0, 1], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_rendered_depth_backprojects_onto_the_surfaces():
   world = synthetic.make_scene("office", seed=3)
   cam = synthetic.default_camera(H, W)

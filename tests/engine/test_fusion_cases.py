@@ -118,6 +118,7 @@ def test_outlier_property_robust_dr(n_agree, p_true, wrong, var_agree, var_out):
   assert np.all(np.isfinite(out["posterior"]))
 
 
+@pytest.mark.slow
 @settings(max_examples=6, deadline=None)
 @given(seed=st.integers(0, 2**16), name=st.sampled_from(["sum_probs", "sum_labels", "bayes",
                                                         "robust_r"]))
@@ -293,6 +294,7 @@ def test_bad_camera_rule_and_map_arguments():
     jf.rules.bayes(aggregate="median")
 
 
+@pytest.mark.slow
 def test_fuse_sequence_equals_a_loop_of_fuse_frame():
   rng = np.random.default_rng(11)
   frames = [h.random_frame(rng) for _ in range(3)]

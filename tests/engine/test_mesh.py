@@ -263,6 +263,7 @@ def test_saved_map_keeps_its_geometry_layer(room, tmp_path):
   np.testing.assert_array_equal(again.faces, m.faces)
 
 
+@pytest.mark.slow
 def test_six_rules_give_bit_identical_maps_with_geometry_on_or_off():
   """Each rule's map with the geometry layer equals, bit for bit, its map without (both fused
   in one compiled program per rule, with `fuse_sequence`'s own body)."""

@@ -104,6 +104,7 @@ def _loss(params, frames):
   return -jnp.sum(jnp.where(occupied[:, None], target * jnp.log(post + 1e-6), 0.0))
 
 
+@pytest.mark.slow
 def test_grad_of_every_parameter_matches_finite_differences():
   frames = frames_of(4, n=3)
   point = {"theta": jnp.asarray([0.5, -1.0, 0.8, 0.3, -0.6, 0.4], jnp.float32),

@@ -108,6 +108,7 @@ def _loss(name, frames, **hp):
   return -jnp.sum(jnp.where(occupied[:, None], target * jnp.log(post + 1e-6), 0.0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,params", [
     ("robust_r", ("beta",)), ("robust_d", ("eps", "alpha0")),
     ("robust_dr", ("beta", "eps", "alpha0"))])

@@ -32,6 +32,7 @@ def checkpoint(tmp_path_factory):
   return str(path)
 
 
+@pytest.mark.slow
 def test_runner_end_to_end_and_cache_reuse(tmp_path, checkpoint):
   config = config_lib.RunConfig(**TINY)
   out = demo.run_demo(config, str(tmp_path), checkpoint=checkpoint)

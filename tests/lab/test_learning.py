@@ -20,6 +20,7 @@ def batches():
   return {11: batch_of([0]), 12: batch_of([1]), 13: batch_of([2])}
 
 
+@pytest.mark.slow
 def test_learn_rule_command_writes_params_record_and_figures(batches, tmp_path, monkeypatch):
   seen = []
 

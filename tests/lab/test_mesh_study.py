@@ -14,6 +14,7 @@ from jaxfusion.lab import mesh_study
 from tests.lab.test_study import CAPACITY, H, W, SimulatedFrontEnd
 
 
+@pytest.mark.slow
 def test_tiny_mesh_study_end_to_end(tmp_path):
   # The scene of test_demo.py and test_study.py (shared compiled shapes), 3 frames, 2 shifts.
   config = mesh_study.MeshStudyConfig.of(

@@ -135,6 +135,7 @@ def test_cache_key_changes_with_the_images(tmp_path):
   assert len(os.listdir(tmp_path)) == 2 and front.calls == 2
 
 
+@pytest.mark.slow
 def test_tiny_study_end_to_end(tmp_path):
   # Layout seed 0, office, trajectory 0, 3 frames at 24×32: the scene of test_demo.py,
   # so that the renderer's compiled shapes are shared when both run.

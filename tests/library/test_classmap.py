@@ -409,6 +409,7 @@ def _run(tmp_path, class_map, *extra):
                    "--out", str(tmp_path / "out"), *extra])
 
 
+@pytest.mark.slow
 def test_run_with_a_json_class_map_fuses_and_scores_the_remapped_map(tmp_path, capsys):
   _write_predictions(tmp_path / "preds", samples=True)          # samples: the exact path
   path = tmp_path / "map.json"

@@ -83,6 +83,7 @@ def test_vmap_over_frames_with_a_shared_map_donates_nothing():
                                rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_grad_and_vmap_of_fuse_sequence_equal_the_loop(snippet_grad):
   def seq_loss(beta):
     rule = jf.rules.robust(beta=beta)
@@ -94,6 +95,7 @@ def test_grad_and_vmap_of_fuse_sequence_equal_the_loop(snippet_grad):
                              [float(loss(0.1)), float(loss(BETA))], rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_grad_of_fuse_batch_and_fuse_sweep_equal_the_loop(snippet_grad):
   def batch_loss(beta):
     states = jf.fuse_batch(jax.tree.map(lambda x: x[None], SEQUENCE), cam,
@@ -109,6 +111,7 @@ def test_grad_of_fuse_batch_and_fuse_sweep_equal_the_loop(snippet_grad):
   np.testing.assert_allclose(float(jax.grad(sweep_loss)(BETA)), snippet_grad, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_grad_of_the_tuning_loss_without_jit_matches_finite_differences():
   keys, ok = camera_lib.depth_to_voxel_keys(frames[0].depth, frames[0].T_world_cam, cam, 0.1)
   coords = np.unique(np.asarray(keys)[np.asarray(ok)], axis=0)[::4]   # GT voxels the map holds

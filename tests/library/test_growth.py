@@ -42,6 +42,7 @@ def _assert_same_map(a, b):
     np.testing.assert_allclose(va[k], vb[k], rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["robust_dr", "sum_labels"])
 def test_grow_map_keeps_every_voxel_exactly(name):
   rule = jf.rules.by_name(name)
@@ -57,6 +58,7 @@ def test_grow_map_keeps_every_voxel_exactly(name):
                    jf.fuse_sequence(_fixed(_frames(4), 2**16, rule), more, CAMERA, rule))
 
 
+@pytest.mark.slow
 def test_mapper_from_2_14_equals_a_map_started_at_2_18():
   rule = jf.rules.robust(beta=0.3)
   frames = _frames()
@@ -79,6 +81,7 @@ def test_mapper_from_2_14_equals_a_map_started_at_2_18():
     _assert_same_map(mapper.state, big)
 
 
+@pytest.mark.slow
 def test_new_voxel_count_is_exact_for_depth_valid_frames():
   rule = jf.rules.bayes()
   frames = _frames(3)
@@ -90,6 +93,7 @@ def test_new_voxel_count_is_exact_for_depth_valid_frames():
   assert count == int(after.num_occupied) - before > 0
 
 
+@pytest.mark.slow
 def test_mapper_stops_at_max_capacity_and_counts_drops():
   rule = jf.rules.bayes()
   mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, max_capacity=2**13)

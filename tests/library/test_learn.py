@@ -32,6 +32,7 @@ def test_constrain_round_trip_and_start_is_dr_like():
     learn.start_params(4, start={"eps": 1.0})
 
 
+@pytest.mark.slow
 def test_fit_lowers_the_loss_and_keeps_the_best_validation_point(batches):
   train, validation = batches
   seen = []
@@ -56,6 +57,7 @@ def test_fit_lowers_the_loss_and_keeps_the_best_validation_point(batches):
   assert float(loss) == pytest.approx(min(losses), rel=1e-4)
 
 
+@pytest.mark.slow
 def test_fit_stops_when_validation_does_not_improve(batches):
   train, validation = batches
   # A huge step size overshoots at once: validation never beats the start, patience 1 stops it.
@@ -67,6 +69,7 @@ def test_fit_stops_when_validation_does_not_improve(batches):
     np.testing.assert_allclose(res.params["beta"], np.asarray(start["beta"]), rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_fit_selecting_by_miou_keeps_the_best_validation_miou(batches):
   train, validation = batches
   res = learn.fit(train, validation, steps=6, learning_rate=0.3, eval_every=2, patience=10,

@@ -399,6 +399,7 @@ def test_command(scene, tmp_path, monkeypatch, capsys):
 
 
 # --- the learned rule's column -------------------------------------------------------------------
+@pytest.mark.slow
 def test_learned_column_with_the_paper_rules_special_cases_matches_their_columns(scene):
   """A learned rule set to Bayes (resp. D+R at the sweep's β) in every cell fuses the same views
   as the sweep's own columns, so its confusions match theirs."""
@@ -417,6 +418,7 @@ def test_learned_column_with_the_paper_rules_special_cases_matches_their_columns
     simulate.sweep_grid([scene], **grid, learned=[[rule]])
 
 
+@pytest.mark.slow
 def test_simulated_batch_and_per_cell_fits(scene, tmp_path):
   model = sim.error_model(num_classes=K, error_rate=0.3, alpha_noise=0.5)
   data = simulate.simulated_batch([scene, scene], model, seed=3)

@@ -116,6 +116,7 @@ def test_gradients_finite_at_zero_variance_one_hot_and_empty_voxels(data):
   assert float(value) == 0.0 and float(grad["beta"]) == 0.0
 
 
+@pytest.mark.slow
 def test_sweep_equals_sequential_maps_scored_with_metrics(data):
   frames, coords, labels = data
   betas = [0.0, 0.3, 0.9]
@@ -257,6 +258,7 @@ def two():
   return batch_of([0, 1])
 
 
+@pytest.mark.slow
 def test_objective_selection_and_per_class_tuning(two):
   args = (two["frames"], CAM, two["coords"], two["labels"])
   kw = dict(rule="D+R", steps=2, learning_rate=0.3, capacity=CAPACITY, voxel_size=VOXEL,

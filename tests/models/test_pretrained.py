@@ -22,6 +22,7 @@ def test_shipped_checkpoint_is_small_and_documented(model):
   assert (checkpoint.WEIGHTS_DIR / "MODEL_CARD.md").is_file()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("domain, min_accuracy, min_miou", [
     # Chance (uniform guessing over 7 classes): pixel accuracy 0.14, mIoU about 0.03.
     ("train", 0.75, 0.3),   # unseen views of the training domain

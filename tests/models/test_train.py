@@ -36,6 +36,7 @@ def _eval_loss(graphdef, params, images, labels):
   return float(_eval_loss_jit(graphdef, params, jnp.asarray(images), jnp.asarray(labels)))
 
 
+@pytest.mark.slow
 def test_a_few_steps_lower_the_loss():
   config = net.tiny_config(K)
   graphdef, params = net.init(config, key=jax.random.key(0))
@@ -137,6 +138,7 @@ def _region_image(seed=0):
   return jnp.asarray(image), jnp.asarray(labels)
 
 
+@pytest.mark.slow
 def test_region_recolor_is_identity_when_off_and_stays_in_range():
   image, labels = _region_image()
   same = train.region_recolor(_rbg(0), image, labels, num_classes=K, color_prob=0.0,
@@ -403,6 +405,7 @@ def test_quick_and_recipe_runs_never_overwrite_the_packaged_weights():
     assert pathlib.Path(out).resolve() != checkpoint.PRETRAINED_PATH.resolve(), out
 
 
+@pytest.mark.slow
 def test_train_and_evaluate_writes_a_checkpoint_whose_record_replays_its_config(tmp_path,
                                                                               monkeypatch):
   rng = np.random.default_rng(0)
