@@ -6,7 +6,9 @@ frames (bench room, `bench.scene`, 640×480 by default).
 
 Per voxel size, in one process: TSDF integration alone (`tsdf.integrate`), the semantics alone
 (`fuse_frame`, D+R, 0.1 m) and both in one call (`fuse_frame` on a map with the geometry layer),
-each the median ms per frame over the sequence after a warm-up pass; mesh extraction (median of
+each the median ms per frame over the sequence after a warm-up pass (TSDF alone also with
+blocks found from every pixel, `block_stride=1`, and the blocks each lattice finds); mesh
+extraction (median of
 repeats) and its triangle count; bytes per allocated geometry voxel and the meshing programs'
 scratch (XLA's `memory_analysis` of the two compiled programs: temporaries plus outputs);
 Open3D's integrate / extract_triangle_mesh on the same frames with the same voxel size,
@@ -18,6 +20,7 @@ Writes `bench/results/geometry.json`.
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -158,6 +161,16 @@ def measure(frames, voxel_size: float, *, passes: int = 2, mesh_repeats: int = 3
     row["tsdf_ms"] = min(row["tsdf_ms"], _median_ms(integrate, count, 1))
   geometry = layer[0]
 
+  # The same layer with blocks found from every pixel (block_stride 1, docs/equations.md §8.2).
+  dense = dataclasses.replace(config, block_stride=1)
+  layer[0] = tsdf.init_tsdf(dense)
+  for t in range(count):
+    integrate(t)
+  blocks_every_pixel = int(layer[0].num_blocks)
+  layer[0] = tsdf.init_tsdf(dense)
+  row["tsdf_ms_every_pixel"] = _median_ms(integrate, count, 1)
+  row["blocks_every_pixel"] = blocks_every_pixel
+
   # Semantics alone and both layers in one call.
   for key, geo in (("semantic_ms", None), ("both_ms", config)):
     state = [jf.init_map(capacity=semantic_capacity, num_classes=k, rule=rule, geometry=geo)]
@@ -217,6 +230,12 @@ def format_rows(rows) -> str:
         f"{_ratio(r['tsdf_ms'], o_int):.2f} | {r['semantic_ms']:.1f} | {r['both_ms']:.1f} | "
         f"{r['both_ms'] - r['semantic_ms']:.1f} | {r['mesh_ms']:.0f} ({o_mesh:.0f}) | "
         f"{_ratio(r['mesh_ms'], o_mesh):.2f} | {r['triangles']} ({o.get('num_triangles', '–')}) |")
+  lines += ["", "| voxel | TSDF ms/frame, blocks from every 4th pixel | from every pixel | "
+            "blocks found | from every pixel |", "|---|---|---|---|---|"]
+  for r in rows:
+    lines.append(f"| {r['voxel_size']:.2f} m | {r['tsdf_ms']:.1f} | "
+                 f"{r.get('tsdf_ms_every_pixel', float('nan')):.1f} | {r['blocks']} | "
+                 f"{r.get('blocks_every_pixel', '–')} |")
   quality_rows = [r for r in rows if "quality" in r]
   if quality_rows:
     lines += ["", "| voxel | mesh | acc. cm | comp. cm | Chamfer-L1 cm | P@5 | R@5 | F@5 | "

@@ -8,7 +8,7 @@ positive in front of the surface, clipped to ±τ) and a weight. Blocks that do 
 table is full or the probe bound is reached) are dropped and counted, as voxels are.
 
 One frame (docs/equations.md §8):
-    depth (H, W) + pose ──ray samples z ∈ [d − τ, d + τ]──► block keys (S·N, 3)
+    depth (H, W) + pose ──ray samples z ∈ [d − τ, d + τ], every 4th pixel──► block keys
     block keys ──grouping.group_pixels──► U distinct blocks ──hashing.insert──► slots
     every voxel of the U blocks ──project into the image──► sdf = (d − z)·‖p‖/z, clipped
     weighted running average of (sdf, weight), weight capped at `max_weight`
@@ -42,6 +42,7 @@ from jaxfusion.grouping import group_pixels
 
 WEIGHTINGS = ("constant", "inverse_square")
 DEFAULT_MAX_PROBES = 64
+DEFAULT_BLOCK_STRIDE = 4
 # Blocks per round of the voxel stage (G): 64 blocks of 512 voxels, 32 768 voxels a round.
 _BLOCK_CHUNK = 64
 # Distinct blocks placed per round of the insertion loop.
@@ -74,6 +75,10 @@ class TSDFConfig:
     gate_semantics: when True the semantic layer fuses only the pixels whose point lies on the
       surface the TSDF held before the frame: |sdf| < τ there, or not yet observed (§8.6).
     max_probes: bound on the hash's linear probe.
+    block_stride: blocks are found from every `block_stride`-th pixel of every
+      `block_stride`-th row (4, as Open3D's `compute_unique_block_coordinates`; 1: every
+      pixel). Each pixel still updates the voxels that project onto it; a coarser lattice only
+      risks missing a block whose band slice falls between its rays (§8.2).
   """
   voxel_size: float = 0.05
   truncation_voxels: float = 4.0
@@ -84,6 +89,7 @@ class TSDFConfig:
   max_depth: float = math.inf
   gate_semantics: bool = False
   max_probes: int = DEFAULT_MAX_PROBES
+  block_stride: int = DEFAULT_BLOCK_STRIDE
 
   def __post_init__(self):
     check_config(self)
@@ -124,6 +130,10 @@ def check_config(config: TSDFConfig) -> None:
     raise ValueError(f"max_depth must be positive; got {config.max_depth!r}")
   if not isinstance(config.max_probes, (int, np.integer)) or config.max_probes < 1:
     raise ValueError(f"max_probes must be a positive integer; got {config.max_probes!r}")
+  stride = config.block_stride
+  if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or not (
+      1 <= stride <= 64):
+    raise ValueError(f"block_stride must be an integer in [1, 64] pixels; got {stride!r}")
 
 
 @struct.dataclass
@@ -147,6 +157,7 @@ class TSDFState:
   weighting: str = struct.field(pytree_node=False)
   gate_semantics: bool = struct.field(pytree_node=False)
   max_probes: int = struct.field(pytree_node=False)
+  block_stride: int = struct.field(pytree_node=False)
 
   @property
   def capacity(self) -> int:
@@ -167,7 +178,8 @@ class TSDFState:
         voxel_size=float(self.voxel_size), truncation_voxels=self.truncation_voxels,
         capacity=self.capacity, block_size=self.block_size, weighting=self.weighting,
         max_weight=float(self.max_weight), max_depth=float(self.max_depth),
-        gate_semantics=self.gate_semantics, max_probes=self.max_probes)
+        gate_semantics=self.gate_semantics, max_probes=self.max_probes,
+        block_stride=self.block_stride)
 
 
 def init_tsdf(config: Optional[TSDFConfig] = None, **fields) -> TSDFState:
@@ -200,6 +212,7 @@ def init_tsdf(config: Optional[TSDFConfig] = None, **fields) -> TSDFState:
       weighting=config.weighting,
       gate_semantics=bool(config.gate_semantics),
       max_probes=int(config.max_probes),
+      block_stride=int(config.block_stride),
   )
 
 
@@ -222,7 +235,9 @@ def _valid_depth(state: TSDFState, depth: jax.Array) -> jax.Array:
 
 def band_block_keys(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
                     camera: camera_lib.Camera) -> tuple[jax.Array, jax.Array]:
-  """Block keys of S samples along each pixel's ray, z ∈ [d − τ, d + τ] (§8.2).
+  """Block keys of S samples along the ray of every `block_stride`-th pixel of every
+  `block_stride`-th row (pixels (u, v) with u, v multiples of the stride), z ∈ [d − τ, d + τ]
+  (§8.2).
 
   Args:
     state: the geometry layer.
@@ -231,16 +246,17 @@ def band_block_keys(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
     camera: intrinsics.
 
   Returns:
-    `(keys (S·N, 3) int32, valid (S·N,) bool)`.
+    `(keys (S·n, 3) int32, valid (S·n,) bool)`, n = ⌈H/stride⌉·⌈W/stride⌉ lattice pixels.
   """
-  depth = jnp.asarray(depth, jnp.float32)
+  stride = state.block_stride
+  depth = jnp.asarray(depth, jnp.float32)[::stride, ::stride]
   T = jnp.asarray(T_world_cam, jnp.float32)
   height, width = depth.shape
   samples = ray_samples(state.truncation_voxels, state.block_size)
   ok = _valid_depth(state, depth)
   d = jnp.where(ok, depth, 1.0)
-  rx = (jnp.arange(width, dtype=jnp.float32)[None, :] - camera.cx) / camera.fx
-  ry = (jnp.arange(height, dtype=jnp.float32)[:, None] - camera.cy) / camera.fy
+  rx = (stride * jnp.arange(width, dtype=jnp.float32)[None, :] - camera.cx) / camera.fx
+  ry = (stride * jnp.arange(height, dtype=jnp.float32)[:, None] - camera.cy) / camera.fy
   tau = state.truncation
   keys, valid = [], []
   for s in range(samples):

@@ -11,7 +11,7 @@ class ReferenceTSDF:
   """Projective TSDF in blocks, one Python dict entry per voxel."""
 
   def __init__(self, *, voxel_size=0.05, truncation_voxels=4.0, block_size=8,
-               weighting="constant", max_weight=100.0, max_depth=math.inf):
+               weighting="constant", max_weight=100.0, max_depth=math.inf, block_stride=4):
     self.voxel_size = np.float32(voxel_size)
     self.tau = np.float32(voxel_size) * np.float32(truncation_voxels)
     self.truncation_voxels = truncation_voxels
@@ -19,6 +19,7 @@ class ReferenceTSDF:
     self.weighting = weighting
     self.max_weight = max_weight
     self.max_depth = max_depth
+    self.block_stride = block_stride   # blocks from every stride-th pixel and row (§8.2)
     self.blocks = set()
     self.voxels = {}   # (i, j, k) → [sdf, weight]
 
@@ -28,8 +29,8 @@ class ReferenceTSDF:
     samples = max(2, int(math.ceil(2 * self.truncation_voxels / (0.5 * self.block_size))) + 1)
     edge = np.float32(self.voxel_size * self.block_size)
     blocks = set()
-    for v in range(h):
-      for u in range(w):
+    for v in range(0, h, self.block_stride):
+      for u in range(0, w, self.block_stride):
         if not ok[v, u]:
           continue
         for s in range(samples):

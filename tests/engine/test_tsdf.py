@@ -71,9 +71,10 @@ def _sphere_depth(T, centre, radius, height=36, width=48, cam=CAM):
   return np.where(disc > 0, z, 0.0).astype(np.float32)
 
 
-@pytest.mark.parametrize("weighting", ["constant", "inverse_square"])
-def test_matches_numpy_reference_over_frames(weighting):
-  cfg = dict(voxel_size=0.1, truncation_voxels=3.0, weighting=weighting, max_weight=2.5)
+@pytest.mark.parametrize("weighting, stride", [("constant", 1), ("inverse_square", 4)])
+def test_matches_numpy_reference_over_frames(weighting, stride):
+  cfg = dict(voxel_size=0.1, truncation_voxels=3.0, weighting=weighting, max_weight=2.5,
+             block_stride=stride)
   state = tsdf.init_tsdf(capacity=2**9, **cfg)
   ref = ReferenceTSDF(**cfg)
   n = np.array([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0])
@@ -235,3 +236,17 @@ def test_bad_frame_input_is_refused():
   bad[0, 3] = np.nan
   with pytest.raises(ValueError, match="T_world_cam"):
     tsdf.integrate(state, np.ones((36, 48), np.float32), bad, CAM)
+
+
+def test_a_coarser_block_lattice_finds_a_subset_of_the_blocks():
+  """Every `block_stride`-th pixel and row (§8.2) is a subset of all pixels: the blocks found
+  are a subset of stride 1's, and every voxel they hold has the same value as with stride 1."""
+  T = _pose(yaw=0.3)
+  depth = _sphere_depth(T, np.array([0.2, 0.1, 1.4]), 0.5)
+  layers = {}
+  for stride in (1, 3):
+    state = tsdf.init_tsdf(voxel_size=0.04, capacity=2**10, block_stride=stride)
+    layers[stride] = _observed(tsdf.integrate(state, depth, T, CAM))
+  assert set(layers[3]) <= set(layers[1]) and len(layers[3]) > 0.5 * len(layers[1])
+  for index, value in layers[3].items():
+    np.testing.assert_array_equal(value, layers[1][index])
