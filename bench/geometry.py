@@ -122,13 +122,14 @@ def _meshing_scratch_bytes(layer) -> int:
   """Temporaries plus outputs of the two compiled meshing programs (XLA's memory analysis)."""
   weight = jax.numpy.float32(mesh_lib.DEFAULT_MIN_WEIGHT)
   total = 0
-  compiled = mesh_lib._classify.lower(layer, weight).compile()
+  max_blocks = mesh_lib._padded(max(int(layer.num_blocks), 1))
+  compiled = mesh_lib._classify.lower(layer, weight, max_blocks=max_blocks).compile()
   stats = compiled.memory_analysis()
   total = max(total, stats.temp_size_in_bytes + stats.output_size_in_bytes)
-  cases, flags, neighbours, nv, nf = mesh_lib._classify(layer, weight)
-  compiled = mesh_lib._emit.lower(layer, cases, flags, neighbours,
-                                  max_vertices=mesh_lib._padded(int(nv)),
-                                  max_faces=mesh_lib._padded(int(nf))).compile()
+  plan = mesh_lib._classify(layer, weight, max_blocks=max_blocks)
+  compiled = mesh_lib._emit.lower(layer, plan,
+                                  max_vertices=mesh_lib._padded(int(plan.num_vertices)),
+                                  max_faces=mesh_lib._padded(int(plan.num_faces))).compile()
   stats = compiled.memory_analysis()
   return max(total, stats.temp_size_in_bytes + stats.output_size_in_bytes)
 

@@ -8,9 +8,12 @@ and shared by the (up to four) cubes around its edge. Cubes with a corner whose 
 
 Two programs, with fixed shapes throughout:
   1. `_classify`: every allocated voxel's cube case and its owned edges that carry a vertex,
-     in chunks of blocks (bounded scratch); prefix sums give vertex and triangle ids.
-  2. `_emit`: vertex positions and triangles written into padded buffers of sizes chosen by
-     the host from program 1's counts (rounded up to powers of two, so few shapes compile).
+     in chunks of blocks (each voxel coded inside / usable in one byte, a block's codes joined
+     with its +x/+y/+z neighbours' by slicing; bounded scratch), kept as prefix counts within
+     each block.
+  2. `_emit`: each vertex and each triangle computed from its own index (a search of the
+     blocks' counts, then within its block), into padded buffers of sizes chosen by the host
+     from program 1's counts (powers of two, so few shapes compile); gathers only.
 The host trims the padding and looks up each vertex's class, confidence and entropy in the
 semantic layer (`readout.query`).
 
@@ -102,120 +105,169 @@ def _neighbour_slots(state: tsdf_lib.TSDFState, slots):
   return jnp.where((slots < capacity)[:, None], out, capacity)
 
 
-def _corners(state: tsdf_lib.TSDFState, neighbours, tables):
-  """`(sdf, weight)` at the 8 cube corners of every voxel of some blocks: `(G, V, 8)` each
-  (weight 0 where the corner's block is absent)."""
+def _block_codes(state: tsdf_lib.TSDFState, neighbours, min_weight):
+  """Each voxel's code on the `(b+1)³` voxel centres of a block and its +x/+y/+z neighbours,
+  `(G, b+1, b+1, b+1) int8` indexed `[z, y, x]`: bit 0 inside (sdf < 0), bit 1 usable
+  (weight ≥ `min_weight`; 0 where a neighbour block is absent).
+
+  The 8 blocks' rows are read whole, coded, and joined by slicing (no per-corner gathers)."""
   capacity = state.capacity
-  neighbour, index = tables
-  slot = neighbours[:, jnp.asarray(neighbour)]                       # (G, V, 8)
-  read = jnp.minimum(slot, capacity - 1)
-  sdf = state.sdf[read, jnp.asarray(index)[None]]
-  weight = jnp.where(slot < capacity, state.weight[read, jnp.asarray(index)[None]], 0.0)
-  return sdf, weight
+  b = state.block_size
+  g = neighbours.shape[0]
+  read = jnp.minimum(neighbours, capacity - 1)
+  usable = (neighbours < capacity)[..., None] & (state.weight[read] >= min_weight)
+  code = (usable.astype(jnp.int8) * 2 + (state.sdf[read] < 0).astype(jnp.int8))
+  # Voxel i + b·(j + b·k) of block n sits at (x, y, z) = (i, j, k): rows reshape to [z, y, x].
+  r = code.reshape(g, 8, b, b, b)
+  own_x = jnp.concatenate([r[:, 0], r[:, 1, :, :, :1]], axis=3)                # (G, b, b, b+1)
+  y_face = jnp.concatenate([r[:, 2, :, :1, :], r[:, 3, :, :1, :1]], axis=3)     # (G, b, 1, b+1)
+  slab = jnp.concatenate([own_x, y_face], axis=2)                              # (G, b, b+1, b+1)
+  z_rows = jnp.concatenate([r[:, 4, :1], r[:, 5, :1, :, :1]], axis=3)          # (G, 1, b, b+1)
+  z_edge = jnp.concatenate([r[:, 6, :1, :1, :], r[:, 7, :1, :1, :1]], axis=3)  # (G, 1, 1, b+1)
+  z_face = jnp.concatenate([z_rows, z_edge], axis=2)                           # (G, 1, b+1, b+1)
+  return jnp.concatenate([slab, z_face], axis=1)
 
 
-def _classify_blocks(state, neighbours, tables, min_weight):
-  """Cube cases `(G, V) int32` (0 for skipped cubes) and owned-edge vertex flags `(G, V, 3)`."""
-  sdf, weight = _corners(state, neighbours, tables)
-  ok = weight >= min_weight                                         # (G, V, 8)
-  inside = sdf < 0
-  bits = jnp.asarray(1 << np.arange(8), jnp.int32)
-  cube_ok = jnp.all(ok, axis=-1)
-  case = jnp.where(cube_ok, jnp.sum(jnp.where(inside, bits, 0), axis=-1), 0)
-  # Voxel v's own edge along axis a joins corner 0 (itself) and corner 1 << a.
-  own = [1, 2, 4]
-  flags = jnp.stack([ok[..., 0] & ok[..., c] & (inside[..., 0] != inside[..., c]) for c in own],
-                    axis=-1)
-  return case, flags, sdf
+def _cube_corners(grid, b: int):
+  """`(G, V, 8)`: corner c (offset bits (x, y, z) of c) of the cube at each voxel."""
+  g = grid.shape[0]
+  corners = [grid[:, (c >> 2) & 1:(c >> 2 & 1) + b, (c >> 1) & 1:((c >> 1) & 1) + b,
+                  c & 1:(c & 1) + b].reshape(g, b**3) for c in range(8)]
+  return jnp.stack(corners, axis=-1)
 
 
-@jax.jit
-def _classify(state: tsdf_lib.TSDFState, min_weight):
-  """Program 1: cases `(B, V)` and vertex flags `(B, V, 3)` by slot, plus the block
-  neighbour table `(B, 8)` and counts."""
+class _Plan(NamedTuple):
+  """Program 1's output, by block rank r (the r-th occupied slot, slot order; R ranks, a power
+  of two ≥ the occupied blocks): the slots `(R,) int32` (capacity past the occupied ones), cube
+  cases `(R, V) int32`, inclusive prefix counts within each block of owned-edge vertices
+  `(R, 3V) int32` (voxel-major, then axis) and of triangles `(R, V) int32`, the 8 neighbour
+  blocks' slots and ranks `(R, 8) int32` (capacity / R where absent), and the totals."""
+  slots: jax.Array
+  cases: jax.Array
+  vertex_cum: jax.Array
+  face_cum: jax.Array
+  neighbour_slots: jax.Array
+  neighbour_ranks: jax.Array
+  num_vertices: jax.Array
+  num_faces: jax.Array
+
+
+@functools.partial(jax.jit, static_argnames=("max_blocks",))
+def _classify(state: tsdf_lib.TSDFState, min_weight, *, max_blocks: int) -> _Plan:
+  """Program 1: every occupied block's cube cases, owned-edge vertex flags and triangle counts
+  (chunks of `_MESH_CHUNK` blocks), as prefix counts per block, for the first `max_blocks`
+  occupied slots (the host passes at least their number)."""
   capacity, voxels = state.sdf.shape
-  tables = _corner_tables(state.block_size)
-  slots, num = _occupied_slots(state)
-  chunk = min(_MESH_CHUNK, capacity)
-  padded = -(-capacity // chunk) * chunk
-  slots = jnp.pad(slots, (0, padded - capacity), constant_values=capacity)
+  b = state.block_size
+  all_slots, num = _occupied_slots(state)
+  chunk = min(_MESH_CHUNK, max_blocks)
+  padded = -(-max_blocks // chunk) * chunk
+  slots = jnp.pad(all_slots[:max_blocks], (0, padded - min(max_blocks, capacity)),
+                  constant_values=capacity)
+  rank_of_slot = jnp.full(capacity + 1, max_blocks, jnp.int32).at[slots].set(
+      jnp.arange(padded, dtype=jnp.int32), mode="drop")
+  rank_of_slot = rank_of_slot.at[capacity].set(max_blocks)
+  bits = jnp.asarray(1 << np.arange(8), jnp.int32)
+  num_tris_of = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)
 
   def body(carry):
-    c, cases, flags, neighbours = carry
+    c, cases, vertex_cum, face_cum, neighbours = carry
     these = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
     nb = _neighbour_slots(state, these)
-    case, flag, _ = _classify_blocks(state, nb, tables, min_weight)
-    return (c + 1, cases.at[these].set(case, mode="drop"),
-            flags.at[these].set(flag, mode="drop"), neighbours.at[these].set(nb, mode="drop"))
+    corners = _cube_corners(_block_codes(state, nb, min_weight), b)    # (G, V, 8) int8
+    ok = (corners & 2) != 0
+    inside = (corners & 1) != 0
+    case = jnp.where(jnp.all(ok, axis=-1), jnp.sum(jnp.where(inside, bits, 0), axis=-1), 0)
+    # Voxel v's own edge along axis a joins corner 0 (itself) and corner 1 << a.
+    flags = jnp.stack([ok[..., 0] & ok[..., k] & (inside[..., 0] != inside[..., k])
+                       for k in (1, 2, 4)], axis=-1)                    # (G, V, 3)
+    v_cum = jnp.cumsum(flags.reshape(chunk, 3 * voxels), axis=1, dtype=jnp.int32)
+    f_cum = jnp.cumsum(num_tris_of[case], axis=1, dtype=jnp.int32)
+    at = (c * chunk, 0)
+    return (c + 1, jax.lax.dynamic_update_slice(cases, case, at),
+            jax.lax.dynamic_update_slice(vertex_cum, v_cum, at),
+            jax.lax.dynamic_update_slice(face_cum, f_cum, at),
+            jax.lax.dynamic_update_slice(neighbours, nb, at))
 
-  init = (jnp.zeros((), jnp.int32), jnp.zeros((capacity, voxels), jnp.int32),
-          jnp.zeros((capacity, voxels, 3), bool), jnp.full((capacity, 8), capacity, jnp.int32))
-  _, cases, flags, neighbours = jax.lax.while_loop(lambda c: c[0] * chunk < num, body, init)
-  num_tris = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)[cases]
-  return cases, flags, neighbours, jnp.sum(flags, dtype=jnp.int32), jnp.sum(num_tris,
-                                                                           dtype=jnp.int32)
+  init = (jnp.zeros((), jnp.int32), jnp.zeros((padded, voxels), jnp.int32),
+          jnp.zeros((padded, 3 * voxels), jnp.int32), jnp.zeros((padded, voxels), jnp.int32),
+          jnp.full((padded, 8), capacity, jnp.int32))
+  _, cases, vertex_cum, face_cum, neighbours = jax.lax.while_loop(
+      lambda carry: (carry[0] * chunk < num) & (carry[0] * chunk < padded), body, init)
+  return _Plan(slots, cases, vertex_cum, face_cum, neighbours,
+               rank_of_slot[jnp.minimum(neighbours, capacity)],
+               jnp.sum(vertex_cum[:, -1]), jnp.sum(face_cum[:, -1]))
+
+
+def _search_rows(cum, rows, target):
+  """For each i, the smallest e with `cum[rows[i], e] > target[i]` (rows nondecreasing):
+  a batched binary search, `ceil(log2 L) + 1` gathers per item."""
+  length = cum.shape[1]
+  lo = jnp.zeros(rows.shape, jnp.int32)
+  hi = jnp.full(rows.shape, length, jnp.int32)
+  for _ in range(int(np.ceil(np.log2(max(length, 2)))) + 1):
+    mid = (lo + hi) // 2
+    right = cum[rows, jnp.minimum(mid, length - 1)] <= target
+    active = lo < hi
+    lo = jnp.where(active & right, mid + 1, lo)
+    hi = jnp.where(active & ~right, mid, hi)
+  return lo
+
+
+def _locate(block_cum, within_cum, k):
+  """Item k of a block-major enumeration: `(block, position in it, items before it)`, given
+  each block's inclusive prefix counts `within_cum (R, L)` and their totals' inclusive prefix
+  `block_cum (R,)`."""
+  ranks = block_cum.shape[0]
+  rank = jnp.minimum(jnp.searchsorted(block_cum, k, side="right"), ranks - 1)
+  before = block_cum[rank] - within_cum[rank, -1]
+  position = _search_rows(within_cum, rank, k - before)
+  return rank.astype(jnp.int32), jnp.minimum(position, within_cum.shape[1] - 1), before
 
 
 @functools.partial(jax.jit, static_argnames=("max_vertices", "max_faces"))
-def _emit(state: tsdf_lib.TSDFState, cases, flags, neighbours, *, max_vertices: int,
-          max_faces: int):
-  """Program 2: vertices `(max_vertices, 3)` and faces `(max_faces, 3)` (padding: 0)."""
-  capacity, voxels = state.sdf.shape
+def _emit(state: tsdf_lib.TSDFState, plan: _Plan, *, max_vertices: int, max_faces: int):
+  """Program 2: vertices `(max_vertices, 3)` and faces `(max_faces, 3)` (entries past the
+  counts are padding), each computed from its own index: its block by a search of the blocks'
+  running counts, its voxel by a search within the block — only gathers, no scatter."""
+  capacity = state.capacity
   b = state.block_size
-  tables = _corner_tables(b)
-  vertex_id = (jnp.cumsum(flags.reshape(-1), dtype=jnp.int32) - 1).reshape(capacity, voxels, 3)
-  num_tris = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)[cases]
-  face_start = (jnp.cumsum(num_tris.reshape(-1), dtype=jnp.int32)
-                - num_tris.reshape(-1)).reshape(capacity, voxels)
-  slots, num = _occupied_slots(state)
-  chunk = min(_MESH_CHUNK, capacity)
-  padded = -(-capacity // chunk) * chunk
-  slots = jnp.pad(slots, (0, padded - capacity), constant_values=capacity)
+  ranks = plan.cases.shape[0]
   offsets = jnp.asarray(tsdf_lib.voxel_offsets(b))
-  # Edge e of a cube at voxel v is owned by voxel v + EDGE_OWNER[e] (corner c = its bits).
-  owner_corner = (mc_tables.EDGE_OWNER[:, 0] + 2 * mc_tables.EDGE_OWNER[:, 1]
-                  + 4 * mc_tables.EDGE_OWNER[:, 2]).astype(np.int32)
-  triangles = jnp.asarray(mc_tables.TRIANGLES, jnp.int32)            # (256, 5, 3)
-  edge_axis = jnp.asarray(mc_tables.EDGE_AXIS, jnp.int32)
-  neighbour_of, index_of = (jnp.asarray(t) for t in tables)
+  neighbour_of, index_of = (jnp.asarray(t) for t in _corner_tables(b))
+  vertex_block_cum = jnp.cumsum(plan.vertex_cum[:, -1], dtype=jnp.int32)
+  face_block_cum = jnp.cumsum(plan.face_cum[:, -1], dtype=jnp.int32)
+  vertex_start = vertex_block_cum - plan.vertex_cum[:, -1]
 
-  def body(carry):
-    c, verts, faces = carry
-    these = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
-    read = jnp.minimum(these, capacity - 1)
-    ok = (these < capacity)[:, None]
-    nb = neighbours[read]
-    _, _, sdf = _classify_blocks(state, nb, tables, 0.0)
-    # Vertices on the block's own edges.
-    keys = state.block_keys[read]
-    origin = (keys[:, None, :] * b + offsets[None]).astype(jnp.float32) + 0.5   # (G, V, 3)
-    s0 = sdf[..., 0]
-    ids = vertex_id[read]                                                 # (G, V, 3)
-    for a, corner in enumerate((1, 2, 4)):
-      s1 = sdf[..., corner]
-      t = s0 / jnp.where(s0 != s1, s0 - s1, 1.0)
-      p = origin.at[..., a].add(t) * state.voxel_size
-      write = jnp.where(ok & flags[read][..., a], ids[..., a], max_vertices)
-      verts = verts.at[write.reshape(-1)].set(p.reshape(-1, 3), mode="drop")
-    # Triangles of each cube: edge → owner voxel (maybe in a neighbour block) → vertex id.
-    case = jnp.where(ok, cases[read], 0)                                  # (G, V)
-    tri_edges = triangles[case]                                           # (G, V, 5, 3)
-    edge = jnp.maximum(tri_edges, 0)
-    corner = jnp.asarray(owner_corner)[edge]                              # (G, V, 5, 3)
-    v_index = jnp.arange(voxels)[None, :, None, None]
-    g_index = jnp.arange(chunk)[:, None, None, None]
-    owner_block = nb[g_index, neighbour_of[v_index, corner]]
-    owner_voxel = index_of[v_index, corner]
-    vid = vertex_id[jnp.minimum(owner_block, capacity - 1), owner_voxel, edge_axis[edge]]
-    tri_ok = (tri_edges[..., 0] >= 0) & ok[..., None]                     # (G, V, 5)
-    row = face_start[read][..., None] + jnp.arange(5)[None, None, :]
-    write = jnp.where(tri_ok, row, max_faces)
-    faces = faces.at[write.reshape(-1)].set(vid.reshape(-1, 3), mode="drop")
-    return c + 1, verts, faces
+  # Vertex k: the k-th owned edge with a sign change, on the edge from voxel v along axis a.
+  k = jnp.arange(max_vertices, dtype=jnp.int32)
+  rank, e, _ = _locate(vertex_block_cum, plan.vertex_cum, k)
+  v, a = e // 3, e % 3
+  corner = jnp.left_shift(1, a)                                       # 1, 2 or 4
+  slot = jnp.minimum(plan.slots[rank], capacity - 1)
+  other = plan.neighbour_slots[rank, neighbour_of[v, corner]]
+  s0 = state.sdf[slot, v]
+  s1 = state.sdf[jnp.minimum(other, capacity - 1), index_of[v, corner]]
+  t = s0 / jnp.where(s0 != s1, s0 - s1, 1.0)
+  origin = (state.block_keys[slot] * b + offsets[v]).astype(jnp.float32) + 0.5
+  verts = (origin + t[:, None] * jax.nn.one_hot(a, 3, dtype=jnp.float32)) * state.voxel_size
 
-  init = (jnp.zeros((), jnp.int32), jnp.zeros((max_vertices, 3), jnp.float32),
-          jnp.zeros((max_faces, 3), jnp.int32))
-  _, verts, faces = jax.lax.while_loop(lambda c: c[0] * chunk < num, body, init)
+  # Face f: triangle q of the cube at voxel v; its edges' vertices are their owners' ids.
+  f = jnp.arange(max_faces, dtype=jnp.int32)
+  rank, v, before = _locate(face_block_cum, plan.face_cum, f)
+  ntri = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)
+  case = plan.cases[rank, v]
+  q = f - before - (plan.face_cum[rank, v] - ntri[case])
+  edges = jnp.asarray(mc_tables.TRIANGLES, jnp.int32)[case, jnp.clip(q, 0, 4)]   # (F, 3)
+  edges = jnp.maximum(edges, 0)
+  owner_corner = jnp.asarray(
+      mc_tables.EDGE_OWNER[:, 0] + 2 * mc_tables.EDGE_OWNER[:, 1]
+      + 4 * mc_tables.EDGE_OWNER[:, 2], jnp.int32)[edges]              # (F, 3)
+  owner = plan.neighbour_ranks[rank[:, None], neighbour_of[v[:, None], owner_corner]]
+  owner = jnp.minimum(owner, ranks - 1)
+  owner_voxel = index_of[v[:, None], owner_corner]
+  axis = jnp.asarray(mc_tables.EDGE_AXIS, jnp.int32)[edges]
+  faces = vertex_start[owner] + plan.vertex_cum[owner, owner_voxel * 3 + axis] - 1
   return verts, faces
 
 
@@ -254,12 +306,12 @@ def marching_cubes(geometry: tsdf_lib.TSDFState, *,
     raise ValueError("marching_cubes expects one layer; index a batched map first")
   if not (np.isfinite(min_weight) and min_weight >= 0):
     raise ValueError(f"min_weight must be a finite number ≥ 0; got {min_weight!r}")
-  cases, flags, neighbours, num_v, num_f = _classify(geometry, jnp.float32(min_weight))
-  num_v, num_f = int(num_v), int(num_f)
+  plan = _classify(geometry, jnp.float32(min_weight),
+                   max_blocks=_padded(max(int(geometry.num_blocks), 1)))
+  num_v, num_f = int(plan.num_vertices), int(plan.num_faces)
   if num_f == 0:
     return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
-  verts, faces = _emit(geometry, cases, flags, neighbours, max_vertices=_padded(num_v),
-                       max_faces=_padded(num_f))
+  verts, faces = _emit(geometry, plan, max_vertices=_padded(num_v), max_faces=_padded(num_f))
   verts, faces = np.asarray(verts)[:num_v], np.asarray(faces)[:num_f]
   # An edge between two observed voxels whose every cube is skipped (a corner below
   # `min_weight`) carries a vertex no face uses: drop those and renumber.
