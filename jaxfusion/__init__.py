@@ -36,6 +36,7 @@ from jaxfusion.hashing import EMPTY
 from jaxfusion.mapper import Mapper
 from jaxfusion.mesh import Mesh
 from jaxfusion.mesh import extract_mesh
+from jaxfusion.mesh import label_mesh
 from jaxfusion.mesh import mesh_by_class
 from jaxfusion.readout import QueryResult
 from jaxfusion.readout import query
@@ -60,7 +61,8 @@ __version__ = "0.1.0"
 
 __all__ = sorted([
     "Camera", "ClassMap", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "Mapper",
-    "Mesh", "QueryResult", "TSDFConfig", "TSDFState", "extract_mesh", "init_tsdf", "mesh",
+    "Mesh", "QueryResult", "TSDFConfig", "TSDFState", "extract_mesh", "init_tsdf", "label_mesh",
+    "mesh",
     "mesh_by_class", "tsdf", "batch", "calibration_loss", "capacity_for", "datasets", "fuse_batch",
     "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "learn",
     "make_mesh", "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules",

@@ -377,12 +377,7 @@ def extract_mesh(state, *, min_weight: float = DEFAULT_MIN_WEIGHT,
   vertices, faces = marching_cubes(geometry, min_weight=min_weight)
   mesh = Mesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces))
   if semantic is not None:
-    centroids = vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3), np.float32)
-    points = np.concatenate([vertices, centroids]).astype(np.float32)
-    labels, confidence, entropy = _read_labels(semantic, points, fill=fill)
-    n = len(vertices)
-    mesh = mesh._replace(labels=labels[:n], confidence=confidence[:n], entropy=entropy[:n],
-                         face_labels=labels[n:])
+    mesh = label_mesh(mesh, semantic, fill=fill)
   if wanted is not None or bounds is not None:
     keep = np.ones(len(faces), bool)
     if wanted is not None:
@@ -392,6 +387,26 @@ def extract_mesh(state, *, min_weight: float = DEFAULT_MIN_WEIGHT,
       keep &= np.all((c >= bounds[0]) & (c <= bounds[1]), axis=-1)
     mesh = _select_faces(mesh, keep)
   return mesh
+
+
+def label_mesh(mesh: Mesh, state, *, fill: bool = True) -> Mesh:
+  """`mesh` with its vertices' and faces' labels, confidence and entropy read from the
+  semantic layer of `state` (a MapState), as `extract_mesh` does (docs/equations.md §9.2):
+  e.g. one geometry layer's mesh labelled by the maps of several rules.
+
+  Raises:
+    ValueError: `state` is not one MapState.
+  """
+  from jaxfusion.state import MapState   # pylint: disable=import-outside-toplevel
+  if not isinstance(state, MapState) or state.keys.ndim != 2:
+    raise ValueError("label_mesh needs one MapState (its semantic layer labels the mesh)")
+  vertices, faces = mesh.vertices, mesh.faces
+  centroids = vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3), np.float32)
+  points = np.concatenate([vertices, centroids]).astype(np.float32)
+  labels, confidence, entropy = _read_labels(state, points, fill=fill)
+  n = len(vertices)
+  return mesh._replace(labels=labels[:n], confidence=confidence[:n], entropy=entropy[:n],
+                       face_labels=labels[n:])
 
 
 # The 26 neighbours of a voxel, x-major then y then z (the tie order of §9.2).

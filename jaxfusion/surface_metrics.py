@@ -91,6 +91,13 @@ def reconstruction_scores(pred_points: np.ndarray, gt_points: np.ndarray, *,
   return out
 
 
+def nearest_points(points: np.ndarray, surface_points: np.ndarray) -> np.ndarray:
+  """`(P,) int64` index of the nearest of `surface_points (G, 3)` to each of `points (P, 3)`
+  (`mesh_semantic_scores`' `nearest=`, to score several labellings of one mesh)."""
+  _, index = _kdtree(surface_points).query(np.asarray(points, np.float64))
+  return np.asarray(index, np.int64)
+
+
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
   """`(P,) float64` a third of the area of each vertex's faces (they sum to the mesh's area)."""
   area = face_areas(vertices, faces)
@@ -101,12 +108,14 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def mesh_semantic_scores(vertices, faces, vertex_labels, gt_points, gt_labels, *,
-                         num_classes: int, ignore_label: Optional[int] = None) -> dict:
+                         num_classes: int, ignore_label: Optional[int] = None,
+                         nearest: Optional[np.ndarray] = None) -> dict:
   """Each vertex's label against the label of its nearest GT surface sample, weighted by the
   vertex's share of the mesh's area.
 
   A vertex without a label (−1) counts as wrong (it is in no class's TP). Classes are scored
-  when present in the GT or the prediction; mIoU is over classes present in the GT.
+  when present in the GT or the prediction; mIoU is over classes present in the GT. `nearest`
+  `(P,)`: each vertex's nearest GT sample (`nearest_points`), computed when None.
 
   Returns:
     dict with `confusion (K, K)` (area, rows GT, columns predicted), `unlabelled (K,)` (area
@@ -122,8 +131,9 @@ def mesh_semantic_scores(vertices, faces, vertex_labels, gt_points, gt_labels, *
             "unlabelled": np.zeros(num_classes), "iou": np.full(num_classes, np.nan),
             "miou": float("nan"), "accuracy": float("nan"), "vertex_accuracy": float("nan"),
             "vertex_miou": float("nan")}
-  _, nearest = _kdtree(gt_points).query(np.asarray(vertices, np.float64))
-  truth = gt_labels[nearest]
+  if nearest is None:
+    nearest = nearest_points(vertices, gt_points)
+  truth = gt_labels[np.asarray(nearest, np.int64)]
   keep = np.ones(len(truth), bool) if ignore_label is None else truth != ignore_label
   keep &= (truth >= 0) & (truth < num_classes)
 

@@ -148,18 +148,21 @@ def evaluate_sequence(sequence, predictions: dict, gt_voxels: dict, surface: dic
   (counts) and the mesh's padded area confusion `(K + 1, K + 1)` (m²;
   `surface_metrics.padded_confusion`), and the meshes (for the figure)."""
   k = predictions["mean"].shape[-1]
-  geometry = None
+  geometry = surface_mesh = nearest = None
   voxel_cm, mesh_cm, meshes = {}, {}, {}
   for name in config.rule_names:
     state = _fuse(sequence, predictions, config.make_rule(name), name, config,
                   config.geometry if geometry is None else None)
-    geometry = state.geometry if geometry is None else geometry
+    if geometry is None:   # one geometry layer, one mesh: each rule only relabels it
+      geometry = state.geometry
+      surface_mesh = jf.extract_mesh(geometry)
+      nearest = surface_metrics.nearest_points(surface_mesh.vertices, surface["points"])
     state = state.replace(geometry=geometry)
     voxel_cm[name] = metrics.evaluate_map(jf.read_map(state), gt_voxels, k)["confusion"]
-    mesh = jf.extract_mesh(state)
+    mesh = jf.label_mesh(surface_mesh, state)
     s = surface_metrics.mesh_semantic_scores(mesh.vertices, mesh.faces, mesh.labels,
                                              surface["points"], surface["labels"],
-                                             num_classes=k)
+                                             num_classes=k, nearest=nearest)
     mesh_cm[name] = surface_metrics.padded_confusion(s["confusion"], s["unlabelled"])
     meshes[name] = mesh
   first = next(iter(meshes.values()))

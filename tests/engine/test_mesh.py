@@ -279,3 +279,16 @@ def test_six_rules_give_bit_identical_maps_with_geometry_on_or_off():
     assert int(on.geometry.num_blocks) > 0
     for a, b in zip(jax.tree.leaves(off), jax.tree.leaves(on.replace(geometry=None))):
       np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_label_mesh_relabels_one_geometry_for_another_map(room):
+  frames, state, m = room
+  other_rule = jf.rules.bayes()
+  other = jf.init_map(capacity=2**14, num_classes=7, rule=other_rule)
+  other = jf.fuse_sequence(other, frames.stacked(), frames.camera, other_rule)
+  relabelled = jf.label_mesh(m, other)
+  direct = jf.extract_mesh(other.replace(geometry=state.geometry))
+  for field in ("vertices", "faces", "labels", "confidence", "entropy", "face_labels"):
+    np.testing.assert_array_equal(getattr(relabelled, field), getattr(direct, field), field)
+  with pytest.raises(ValueError, match="label_mesh needs one MapState"):
+    jf.label_mesh(m, state.geometry)
