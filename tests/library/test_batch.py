@@ -1,5 +1,5 @@
 """Batched fusion: equal to the sequential path, neutral padding, clear errors, and the same
-result sharded over 4 (forced CPU) devices."""
+result sharded over 4 (forced CPU) devices, with and without the geometry layer."""
 
 import os
 import subprocess
@@ -150,7 +150,11 @@ _SHARDED_SCRIPT = textwrap.dedent("""
     rules, _ = batch.rule_grid(beta=np.linspace(0, 1, 5))             # R = 5
     s_one = batch.fuse_sweep(frames, h.CAMERA, rules, **kw)
     s_many = batch.fuse_sweep(frames, h.CAMERA, rules, mesh=mesh, **kw)
-    for a, b in [(one, many), (s_one, s_many)]:
+    geometry = jf.TSDFConfig(voxel_size=0.1, capacity=2**8)           # with the TSDF layer
+    g_one = batch.fuse_batch(frames, h.CAMERA, rule, geometry=geometry, **kw)
+    g_many = batch.fuse_batch(frames, h.CAMERA, rule, geometry=geometry, mesh=mesh, **kw)
+    assert int(g_one.geometry.num_blocks.sum()) > 0
+    for a, b in [(one, many), (s_one, s_many), (g_one, g_many)]:
       for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
     print("SHARDED_OK")
