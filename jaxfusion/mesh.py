@@ -414,16 +414,26 @@ _VOXEL_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1)
                               for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)], np.int32)
 
 
+def _query_padded(semantic, points: np.ndarray):
+  """`readout.query` of `points (N, 3)` padded to a power of two (so that meshes of every size
+  compile a few query programs, not one each), trimmed back to N (host arrays)."""
+  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
+  n = len(points)
+  padded = np.zeros((_padded(n), 3), np.float32)
+  padded[:n] = points
+  q = readout.query(semantic, padded)
+  return type(q)(*(np.asarray(x)[:n] for x in q))
+
+
 def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
   """`(labels (N,) int32, confidence (N,) float32, entropy (N,) float32)` of world points from
   the semantic layer, as §9.2 states (with `fill`, an empty voxel reads its nearest neighbour
   in the map)."""
   from jaxfusion import camera as camera_lib   # pylint: disable=import-outside-toplevel
-  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
   n = len(points)
   if n == 0:
     return np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32)
-  q = readout.query(semantic, points)
+  q = _query_padded(semantic, points)
   found = np.array(q.found)
   posterior = np.array(q.posterior)
   entropy = np.array(q.entropy, np.float32)
@@ -433,7 +443,7 @@ def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
     keys, _ = camera_lib.voxel_keys(points[missing], semantic.voxel_size)
     keys = np.asarray(keys, np.int64)
     centres = ((keys[:, None, :] + _VOXEL_NEIGHBOURS[None]).astype(np.float32) + 0.5) * size
-    near = readout.query(semantic, centres.reshape(-1, 3))
+    near = _query_padded(semantic, centres.reshape(-1, 3))
     near_found = np.asarray(near.found).reshape(len(missing), len(_VOXEL_NEIGHBOURS))
     # Vertices often lie exactly between two voxel centres: distances in float64, rounded to
     # a micrometre, so that such ties go to the first neighbour whatever the rounding.
