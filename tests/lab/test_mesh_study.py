@@ -35,6 +35,10 @@ def test_tiny_mesh_study_end_to_end(tmp_path):
   g = payload["summary"]["geometry"]
   assert 0 < g["chamfer_l1"] < 0.2 and 0 < g["fscore@0.05"] <= 1 and g["faces"] > 0
   assert len(payload["sequences"]) == 2
+  by_shift = payload["summary"]["by_shift"]                # one sequence per shift here
+  assert set(by_shift) == {"0", "1"} and "| shift |" in out["table"]
+  assert by_shift["1"]["rules"]["robust_dr"]["mesh_vs_bayes"][1] == pytest.approx(
+      by_shift["1"]["rules"]["robust_dr"]["mesh_vs_bayes"][2])
   assert "| D+R |" in out["table"] and "| Learned |" in out["table"]
   assert all(0 <= r["mesh_miou"] <= 1 for r in rows.values())
 
