@@ -127,3 +127,44 @@ def add_grid(parser: argparse.ArgumentParser, *, envs: Optional[Sequence[str]],
 def as_tuple(value):
   """A list from argparse as a tuple (None stays None)."""
   return None if value is None else tuple(value)
+
+
+def add_learned_rule(parser: argparse.ArgumentParser) -> None:
+  """`--learned-rule PARAMS_JSON` | `--no-learned-rule`: the learned rule as a seventh row."""
+  learned = parser.add_mutually_exclusive_group()
+  learned.add_argument("--learned-rule", default=None, metavar="PARAMS_JSON",
+                       help="params.json of `jaxfusion learn-rule`, fused as a seventh row "
+                            "(default: the shipped parameters, jaxfusion_models."
+                            "LEARNED_RULE_PATH)")
+  learned.add_argument("--no-learned-rule", action="store_true",
+                       help="the six paper rules only")
+
+
+def learned_rule(args: argparse.Namespace) -> tuple:
+  """`(params, source)` of `add_learned_rule`'s flags: the parameters (`learn.load_params`) and
+  the path they came from, or `(None, None)` with --no-learned-rule."""
+  if args.no_learned_rule:
+    return None, None
+  from jaxfusion import learn   # pylint: disable=import-outside-toplevel
+  if args.learned_rule is None:
+    import jaxfusion_models  # pylint: disable=import-outside-toplevel
+    source = str(jaxfusion_models.LEARNED_RULE_PATH)
+  else:
+    source = args.learned_rule
+  return learn.load_params(source), source
+
+
+def add_study_run(parser: argparse.ArgumentParser, *, seed_aliases: Sequence[str] = (),
+                  seeds_help: str = "") -> None:
+  """The flags of a study's grid of runs (`jaxfusion study`, `jaxfusion mesh-study`): cache,
+  checkpoint, layout seeds, environments, trajectories, shifts, sizes, β and aggregation, the
+  MC seed, bootstrap resamples and the learned rule."""
+  add_cache(parser, default=None)
+  add_checkpoint(parser)
+  add_layout_seeds(parser, default=None, aliases=seed_aliases, help_suffix=seeds_help)
+  add_grid(parser, envs=None, trajectories=None, shifts=True)
+  add_sizes(parser, frames=None, height=None, width=None)
+  add_fusion(parser, beta=None, aggregate=None, voxels=False)
+  add_mc_seed(parser)
+  parser.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
+  add_learned_rule(parser)

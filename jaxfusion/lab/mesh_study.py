@@ -33,7 +33,6 @@ from tqdm.auto import tqdm
 import jaxfusion as jf
 from jaxfusion import datasets
 from jaxfusion import io
-from jaxfusion import learn
 from jaxfusion import metrics
 from jaxfusion import surface_metrics
 from jaxfusion.datasets import surfaces
@@ -360,20 +359,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   p.add_argument("--quick", action="store_true",
                  help="1 seed × office × 1 trajectory × shifts 0 and 1, 12 frames at 60×80")
   p.add_argument("--out", default="outputs/mesh_study", help="output folder")
-  flags.add_cache(p, default=None)
-  flags.add_checkpoint(p)
-  flags.add_layout_seeds(p, default=None, help_suffix=" (default the study's: 1 2 3)")
-  flags.add_grid(p, envs=None, trajectories=None, shifts=True)
-  flags.add_sizes(p, frames=None, height=None, width=None)
-  flags.add_fusion(p, beta=None, aggregate=None, voxels=False)
-  flags.add_mc_seed(p)
-  p.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
-  learned = p.add_mutually_exclusive_group()
-  learned.add_argument("--learned-rule", default=None, metavar="PARAMS_JSON",
-                       help="params.json of `jaxfusion learn-rule` (default: the shipped "
-                            "parameters)")
-  learned.add_argument("--no-learned-rule", action="store_true",
-                       help="the six paper rules only")
+  flags.add_study_run(p, seeds_help=" (default the study's: 1 2 3)")
   p.set_defaults(func=main)
   return p
 
@@ -381,14 +367,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion mesh-study` from parsed arguments and prints the tables."""
   flags.check_at_least(args)
-  learned = source = None
-  if not args.no_learned_rule:
-    if args.learned_rule is None:
-      import jaxfusion_models  # pylint: disable=import-outside-toplevel
-      source = str(jaxfusion_models.LEARNED_RULE_PATH)
-    else:
-      source = args.learned_rule
-    learned = learn.load_params(source)
+  learned, source = flags.learned_rule(args)
   config = MeshStudyConfig.of(
       args.quick, layout_seeds=flags.as_tuple(args.layout_seeds),
       shifts=flags.as_tuple(args.shifts), envs=flags.as_tuple(args.envs),

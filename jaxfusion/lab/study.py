@@ -57,7 +57,6 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import jaxfusion as jf
-from jaxfusion import learn
 from jaxfusion.lab import config as config_lib
 from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
@@ -575,36 +574,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                  help="1 seed × 2 envs × 1 trajectory × 3 shifts, 12 frames at 60×80, M = 8 "
                       "(≤ 3 min on 2 cores)")
   p.add_argument("--out", default="outputs/study", help="output folder")
-  flags.add_cache(p, default=None)
-  flags.add_checkpoint(p)
-  flags.add_layout_seeds(p, default=None, aliases=("--seeds",),
-                         help_suffix=f" (default 1 2 3; the demo uses {DEMO_SEED})")
-  flags.add_grid(p, envs=None, trajectories=None, shifts=True)
-  flags.add_sizes(p, frames=None, height=None, width=None)
-  flags.add_fusion(p, beta=None, aggregate=None, voxels=False)
-  flags.add_mc_seed(p)
-  p.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
-  learned = p.add_mutually_exclusive_group()
-  learned.add_argument("--learned-rule", default=None, metavar="PARAMS_JSON",
-                       help="params.json of `jaxfusion learn-rule`, fused as a seventh row "
-                            "(default: the shipped parameters, jaxfusion_models."
-                            "LEARNED_RULE_PATH)")
-  learned.add_argument("--no-learned-rule", action="store_true",
-                       help="the six paper rules only")
+  flags.add_study_run(p, seed_aliases=("--seeds",),
+                      seeds_help=f" (default 1 2 3; the demo uses {DEMO_SEED})")
   p.set_defaults(func=main)
   return p
 
 
 def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion study` from parsed arguments and prints the tables."""
-  learned = source = None
-  if not args.no_learned_rule:
-    if args.learned_rule is None:
-      import jaxfusion_models  # pylint: disable=import-outside-toplevel
-      source = str(jaxfusion_models.LEARNED_RULE_PATH)
-    else:
-      source = args.learned_rule
-    learned = learn.load_params(source)
+  learned, source = flags.learned_rule(args)
   config = StudyConfig.of(
       args.quick, num_resamples=args.resamples, layout_seeds=flags.as_tuple(args.layout_seeds),
       shifts=flags.as_tuple(args.shifts), envs=flags.as_tuple(args.envs),
