@@ -21,7 +21,8 @@ def test_ci_runs_the_readme_test_command_then_the_slow_tier():
   assert [t[0] for t in tiers] == ["main", "slow"]
   (_, budget, hard, main), (_, _, _, slow) = tiers
   assert main == command
-  assert (int(budget), int(hard)) == (8 * 60, 15 * 60)   # the budget and the hard limit
+  assert int(budget) == 8 * 60                  # the README's budget: 8 min on 2 cores
+  assert int(hard) >= 15 * 60                   # a hard limit far above machine noise
   assert "-m slow" in slow
 
 
