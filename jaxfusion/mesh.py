@@ -131,8 +131,9 @@ def _block_codes(state: tsdf_lib.TSDFState, neighbours, min_weight):
 def _cube_corners(grid, b: int):
   """`(G, V, 8)`: corner c (offset bits (x, y, z) of c) of the cube at each voxel."""
   g = grid.shape[0]
-  corners = [grid[:, (c >> 2) & 1:(c >> 2 & 1) + b, (c >> 1) & 1:((c >> 1) & 1) + b,
-                  c & 1:(c & 1) + b].reshape(g, b**3) for c in range(8)]
+  corners = []
+  for x, y, z in _NEIGHBOURS:                     # corner c's offset (x, y, z) = bits of c
+    corners.append(grid[:, z:z + b, y:y + b, x:x + b].reshape(g, b**3))
   return jnp.stack(corners, axis=-1)
 
 
@@ -162,8 +163,7 @@ def _classify(state: tsdf_lib.TSDFState, min_weight, *, max_blocks: int) -> _Pla
   all_slots, num = _occupied_slots(state)
   chunk = min(_MESH_CHUNK, max_blocks)
   padded = -(-max_blocks // chunk) * chunk
-  slots = jnp.pad(all_slots[:max_blocks], (0, padded - min(max_blocks, capacity)),
-                  constant_values=capacity)
+  slots = jnp.pad(all_slots[:max_blocks], (0, padded - max_blocks), constant_values=capacity)
   rank_of_slot = jnp.full(capacity + 1, max_blocks, jnp.int32).at[slots].set(
       jnp.arange(padded, dtype=jnp.int32), mode="drop")
   rank_of_slot = rank_of_slot.at[capacity].set(max_blocks)
@@ -307,7 +307,7 @@ def marching_cubes(geometry: tsdf_lib.TSDFState, *,
   if not (np.isfinite(min_weight) and min_weight >= 0):
     raise ValueError(f"min_weight must be a finite number ≥ 0; got {min_weight!r}")
   plan = _classify(geometry, jnp.float32(min_weight),
-                   max_blocks=_padded(max(int(geometry.num_blocks), 1)))
+                   max_blocks=min(_padded(max(int(geometry.num_blocks), 1)), geometry.capacity))
   num_v, num_f = int(plan.num_vertices), int(plan.num_faces)
   if num_f == 0:
     return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
@@ -440,8 +440,10 @@ def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
   missing = np.flatnonzero(~found & np.all(np.isfinite(points), axis=1))
   if fill and len(missing):
     size = np.float32(semantic.voxel_size)
-    keys, _ = camera_lib.voxel_keys(points[missing], semantic.voxel_size)
-    keys = np.asarray(keys, np.int64)
+    padded = np.zeros((_padded(len(missing)), 3), np.float32)   # few shapes, as the queries
+    padded[:len(missing)] = points[missing]
+    keys, _ = camera_lib.voxel_keys(padded, semantic.voxel_size)
+    keys = np.asarray(keys, np.int64)[:len(missing)]
     centres = ((keys[:, None, :] + _VOXEL_NEIGHBOURS[None]).astype(np.float32) + 0.5) * size
     near = _query_padded(semantic, centres.reshape(-1, 3))
     near_found = np.asarray(near.found).reshape(len(missing), len(_VOXEL_NEIGHBOURS))
