@@ -16,6 +16,12 @@ from jaxfusion.datasets import synthetic
 ROBUST_RULES = ("robust_r", "robust_d", "robust_dr")
 
 
+def uses_moments(rule_name: str) -> bool:
+  """Whether a rule is fused on the MC moments (the robust rules and the learned one) rather
+  than on the dropout-off pass (the baselines), the paper's setting."""
+  return rule_name in ROBUST_RULES or rule_name == "learned"
+
+
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
   """What a run renders, predicts and fuses. The defaults are the demo's full run.

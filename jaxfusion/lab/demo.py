@@ -35,17 +35,18 @@ def fuse_with_rule(sequence, predictions: dict, rule, config: config_lib.RunConf
                    geometry=None):
   """Fuses a whole sequence with one rule; returns the final MapState.
 
-  The robust rules read the MC moments (`mean`, `var`), the baselines the dropout-off pass
-  (`det`). The map starts at `config.capacity` and grows rather than drop a voxel (`Mapper`).
+  The robust rules (and the learned one) read the MC moments (`mean`, `var`), the baselines
+  the dropout-off pass (`det`). The map starts at `config.capacity` and grows rather than
+  drop a voxel (`Mapper`).
   `geometry` (a `tsdf.TSDFConfig`) fuses a geometry layer in the same calls.
   """
   mapper = Mapper(rule, num_classes=predictions["mean"].shape[-1],
                   voxel_size=config.voxel_size, capacity=config.capacity, geometry=geometry)
-  robust = rule.name in config_lib.ROBUST_RULES
+  moments = config_lib.uses_moments(rule.name)
   frames = jf.Frame(np.asarray(sequence.depth, np.float32),
                     np.asarray(sequence.T_world_cam, np.float32),
-                    predictions["mean"] if robust else predictions["det"],
-                    predictions["var"] if robust else None)
+                    predictions["mean"] if moments else predictions["det"],
+                    predictions["var"] if moments else None)
   return mapper.fuse_sequence(frames, sequence.camera)
 
 

@@ -43,7 +43,6 @@ from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
 from jaxfusion.lab import stats
 from jaxfusion.lab import study
-from jaxfusion.mapper import Mapper
 
 LEARNED = study.LEARNED
 GEOMETRY_KEYS = ("accuracy", "completeness", "chamfer_l1", "precision@0.05", "recall@0.05",
@@ -110,25 +109,6 @@ class MeshStudyConfig:
     return self
 
 
-def _uses_moments(name: str) -> bool:
-  """The robust rules and the learned one read the MC moments, the baselines the dropout-off
-  pass (the paper's setting, as in the demo and the study)."""
-  return name in config_lib.ROBUST_RULES or name == LEARNED
-
-
-def _fuse(sequence, predictions: dict, rule, name: str, config: MeshStudyConfig, geometry):
-  """The final MapState of one rule, with a geometry layer when `geometry` is a config."""
-  mapper = Mapper(rule, num_classes=predictions["mean"].shape[-1],
-                  voxel_size=config.run.voxel_size, capacity=config.run.capacity,
-                  geometry=geometry)
-  moments = _uses_moments(name)
-  frames = jf.Frame(np.asarray(sequence.depth, np.float32),
-                    np.asarray(sequence.T_world_cam, np.float32),
-                    predictions["mean"] if moments else predictions["det"],
-                    predictions["var"] if moments else None)
-  return mapper.fuse_sequence(frames, sequence.camera)
-
-
 def geometry_scores(mesh, surface: dict, *, seed: int = 0) -> dict:
   """`surface_metrics.reconstruction_scores` of a mesh against a true surface, both sampled
   every `MESH_SAMPLE_SPACING` (the mesh: area-weighted random samples); plus its size."""
@@ -150,8 +130,8 @@ def evaluate_sequence(sequence, predictions: dict, gt_voxels: dict, surface: dic
   geometry = surface_mesh = nearest = None
   voxel_cm, mesh_cm, meshes = {}, {}, {}
   for name in config.rule_names:
-    state = _fuse(sequence, predictions, config.make_rule(name), name, config,
-                  config.geometry if geometry is None else None)
+    state = demo.fuse_with_rule(sequence, predictions, config.make_rule(name), config.run,
+                                geometry=config.geometry if geometry is None else None)
     if geometry is None:   # one geometry layer, one mesh: each rule only relabels it
       geometry = state.geometry
       surface_mesh = jf.extract_mesh(geometry)
