@@ -106,6 +106,14 @@ def stack_sequences(sequences: Sequence[fusion.Frame], *, pad: bool = True
   poses = np.tile(np.eye(4, dtype=np.float32), (batch, t_max, 1, 1))
   probs = np.full((batch, t_max, h_max, w_max, num_classes), 1.0 / num_classes, np.float32)
   var = np.zeros_like(probs) if has_var == {True} else None
+  has_rgb = {getattr(s, "rgb", None) is not None for s in sequences}
+  if len(has_rgb) != 1:
+    raise ValueError("either every sequence has rgb or none has")
+  rgb = None
+  if has_rgb == {True}:
+    rgb_dtypes = {np.asarray(s.rgb).dtype for s in sequences}
+    rgb = np.zeros((batch, t_max, h_max, w_max, 3),
+                   np.uint8 if rgb_dtypes == {np.dtype(np.uint8)} else np.float32)
   mask = np.zeros((batch, t_max), bool)
   for b, seq in enumerate(sequences):
     t, (h, w) = lengths[b], sizes[b]
@@ -114,8 +122,10 @@ def stack_sequences(sequences: Sequence[fusion.Frame], *, pad: bool = True
     probs[b, :t, :h, :w] = np.asarray(seq.probs, np.float32)
     if var is not None:
       var[b, :t, :h, :w] = np.asarray(seq.var, np.float32)
+    if rgb is not None:
+      rgb[b, :t, :h, :w] = np.asarray(seq.rgb, rgb.dtype)
     mask[b, :t] = True
-  return fusion.Frame(depth, poses, probs, var), mask
+  return fusion.Frame(depth, poses, probs, var, rgb), mask
 
 
 # --- the per-map kernel and its batched forms ------------------------------------------------
@@ -258,7 +268,7 @@ def check_batch_frames(frames, mask, rule, *, batch_dims, num_classes):
                      "stack_sequences to batch sequences of different lengths or sizes)")
   flat = jax.tree.map(lambda x: _on_host(x).reshape((-1,) + np.shape(x)[batch_dims:]), frames)
   validation.check_frame(flat, num_classes=num_classes, requires_var=rule.requires_var,
-                         rule_name=rule.name, batch_dims=1)
+                         rule_name=rule.name, batch_dims=1, context=rule.context)
   if mask is None:
     return np.ones(lead, bool)
   mask = np.asarray(mask)
@@ -285,8 +295,8 @@ def num_stacked_rules(rules: rules_base.FusionRule) -> int:
   `(R, K)` for per-class values). Raises ValueError for an unstacked rule or ragged lengths."""
   leaves = jax.tree.leaves(rules.hparams)
   # Leading axis = rules; per-class hyperparameters (docs/equations.md §3.7) add a trailing (K,)
-  # axis.
-  if not leaves or any(np.ndim(x) not in (1, 2) for x in leaves):
+  # axis, and tables (the learned rule's per-class weights, GLFS) more.
+  if not leaves or any(np.ndim(x) == 0 for x in leaves):
     raise ValueError("rules must be a stack of rules with hyperparameters, e.g. "
                      "rules.stack([rules.robust(beta=b) for b in betas]) or rule_grid(...)")
   sizes = {np.shape(x)[0] for x in leaves}

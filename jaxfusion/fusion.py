@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfusion import camera as camera_lib
+from jaxfusion import context as context_lib
 from jaxfusion import hashing
 from jaxfusion import numerics
 from jaxfusion import tsdf
@@ -50,11 +51,14 @@ class Frame(NamedTuple):
     T_world_cam: `(4, 4)` float camera-to-world pose.
     probs: `(H, W, K)` float class probabilities (the MC mean for Bayesian nets).
     var: `(H, W, K)` float per-class epistemic variance, or None (rules that need it say so).
+    rgb: `(H, W, 3)` colour image (uint8, or float in [0, 1]) registered to the depth, or None;
+      only rules that read image context features (docs/equations.md §2.5) need it.
   """
   depth: jax.Array
   T_world_cam: jax.Array
   probs: jax.Array
   var: Optional[jax.Array] = None
+  rgb: Optional[jax.Array] = None
 
 
 def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int):
@@ -103,9 +107,10 @@ def _pixel_blocks(n: int) -> int:
 
 
 def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
-  """The rule's update of the touched rows, as `f(rows, probs, var, hparams, segment, counts,
-  slot_of_group, num_groups) -> rows`, where `observe(probs, var, hparams)` gives the per-pixel
-  terms of `(n, K)` inputs.
+  """The rule's update of the touched rows, as `f(rows, probs, var, ctx, hparams, segment,
+  counts, slot_of_group, num_groups, index) -> rows`, where `observe(probs, var, ctx, hparams)`
+  gives the per-pixel terms of `(n, K)` inputs and `(n, F)` context (ctx None when the rule
+  reads none).
 
   The forward pass handles `chunk` voxels per round of a `lax.while_loop`, in place and in time
   proportional to U; within a round the per-pixel terms are computed and scatter-reduced one
@@ -129,11 +134,11 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
     new = jax.vmap(rule.update, in_axes=(0, 0, None))(old, observation, hparams)
     return jax.tree.map(lambda r, x: r.at[slots].set(x.astype(r.dtype), mode="drop"), rows, new)
 
-  def dense(rows, probs, var, hparams, segment, counts, slot_of_group, index):
+  def dense(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index):
     probs, var = _frame_of(probs, index), _frame_of(var, index)
     num_rows = counts.shape[0]
     segment = jnp.minimum(segment, num_rows)
-    terms = observe(probs, var, hparams)
+    terms = observe(probs, var, ctx, hparams)
     sums = jax.tree.map(
         lambda t: jax.ops.segment_sum(t, segment, num_segments=num_rows + 1)[:num_rows],
         terms.sums)
@@ -143,12 +148,13 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
     return apply(rows, hparams, sums, maxes, counts, slot_of_group)
 
   @jax.custom_vjp
-  def update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups, index):
+  def update(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups, index):
     n, num_classes = probs.shape[-2:]
     blocks = _pixel_blocks(n)
     size = n // blocks
     shapes = jax.eval_shape(observe, probs.reshape(-1, num_classes)[:1],
-                            var.reshape(-1, num_classes)[:1], hparams)
+                            var.reshape(-1, num_classes)[:1],
+                            None if ctx is None else ctx[:1], hparams)
 
     def pixel_block(x, b):
       # A block of frame `index` read straight from a (T, n, K) stack: slicing the frame out
@@ -163,7 +169,8 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
       v = pixel_block(var, b)
       local = jax.lax.dynamic_slice(segment, (b * size,), (size,)) - start
       local = jnp.where((local >= 0) & (local < chunk), local, chunk)
-      terms = observe(p, v, hparams)
+      c = None if ctx is None else jax.lax.dynamic_slice_in_dim(ctx, b * size, size)
+      terms = observe(p, v, c, hparams)
       sums = jax.tree.map(lambda a, t: a.at[local].add(t), sums, terms.sums)
       maxes = jax.tree.map(lambda a, t: a.at[local].max(t), maxes, terms.maxes)
       return sums, maxes
@@ -184,16 +191,20 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
                                  (jnp.zeros((), jnp.int32), rows))
     return rows
 
-  def fwd(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups, index):
-    out = update(rows, probs, var, hparams, segment, counts, slot_of_group, num_groups, index)
-    return out, (rows, probs, var, hparams, segment, counts, slot_of_group, index)
+  def fwd(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups, index):
+    out = update(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups,
+                 index)
+    return out, (rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index)
 
   def bwd(residuals, cotangent):
-    rows, probs, var, hparams, segment, counts, slot_of_group, index = residuals
-    _, vjp = jax.vjp(lambda r, p, v, h, c: dense(r, p, v, h, segment, c, slot_of_group, index),
-                     rows, probs, var, hparams, counts)
+    # The context is a function of the frame that is not differentiated (its cotangent is 0).
+    rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index = residuals
+    _, vjp = jax.vjp(
+        lambda r, p, v, h, c: dense(r, p, v, ctx, h, segment, c, slot_of_group, index),
+        rows, probs, var, hparams, counts)
     d_rows, d_probs, d_var, d_hparams, d_counts = vjp(cotangent)
-    return d_rows, d_probs, d_var, d_hparams, None, d_counts, None, None, None
+    d_ctx = None if ctx is None else jnp.zeros_like(ctx)
+    return d_rows, d_probs, d_var, d_ctx, d_hparams, None, d_counts, None, None, None
 
   update.defvjp(fwd, bwd)
   return update
@@ -251,10 +262,20 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
       valid = valid & tsdf.surface_gate(geometry, depth, pose, camera)
     geometry = tsdf.integrate_unchecked(geometry, depth, pose, camera)
 
-  def observe(p, v, hparams):
+  # Per-pixel context (docs/equations.md §2.5), only for rules that ask for it: a rule with an
+  # empty `context` is traced exactly as before.
+  ctx = None
+  if rule.context:
+    rgb = None if frames.rgb is None else _frame_of(frames.rgb, index)
+    ctx = context_lib.pixel_context(
+        depth, _frame_of(frames.probs, index), camera, rule.context, rgb).reshape(n, -1)
+
+  def observe(p, v, c, hparams):
     p = jnp.where(jnp.isfinite(p), jnp.maximum(p, 0.0), 1.0 / num_classes)
     v = jnp.where(jnp.isfinite(v), v, 0.0) if has_var else jnp.zeros_like(p)
-    return jax.vmap(rule.observe, in_axes=(0, 0, None))(p, v, hparams)
+    if c is None:
+      return jax.vmap(rule.observe, in_axes=(0, 0, None))(p, v, hparams)
+    return jax.vmap(rule.observe, in_axes=(0, 0, 0, None))(p, v, c, hparams)
 
   groups = group_pixels(keys, valid)
   chunk = min(_CHUNK, n)
@@ -270,7 +291,7 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
   # update each touched voxel once.
   state, slot_of_group = _place_groups(state, keys, groups, counts, chunk)
   rows = _rows_update(rule, chunk, observe)(
-      state.rows, probs, var if has_var else probs, rule.hparams, groups.segment, counts,
+      state.rows, probs, var if has_var else probs, ctx, rule.hparams, groups.segment, counts,
       slot_of_group, groups.num_groups, index)
   return state.replace(rows=rows, geometry=geometry)
 
@@ -300,7 +321,8 @@ def _check_inputs(state, frame, camera, rule, *, batch_dims, sample=False):
   validation.check_rule_matches_map(state, rule)
   validation.check_camera(camera)
   validation.check_frame(frame, num_classes=state.num_classes, requires_var=rule.requires_var,
-                         rule_name=rule.name, batch_dims=batch_dims, sample=sample)
+                         rule_name=rule.name, batch_dims=batch_dims, sample=sample,
+                         context=rule.context)
 
 
 def fuse_frame(state: MapState, frame: Frame, camera: camera_lib.Camera,

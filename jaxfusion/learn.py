@@ -35,7 +35,9 @@ from jaxfusion import tune
 # The module (`jaxfusion.rules.learned` the attribute is the `learned` factory).
 learned_lib = importlib.import_module("jaxfusion.rules.learned")
 
-TRAINED = ("theta", "bias", "mix", "gate", "beta")
+TRAINED = ("theta", "bias", "context_theta", "mix", "gate", "beta")
+# Rule families `fit` can fit: the learned rule (§3.9) and GLFS (§3.10).
+FAMILIES = ("learned", "glfs")
 # What early stopping may keep: the lowest validation loss or the highest validation mIoU.
 SELECTIONS = ("loss", "miou")
 # Where the parameters start (constrained values): D+R at the paper's β, with the weights and the
@@ -63,16 +65,39 @@ def unconstrain(values: dict) -> dict:
 
 
 def start_params(num_classes: int, *, start: Optional[dict] = None,
-                 per_class_beta: bool = True) -> dict:
-  """Unconstrained starting parameters (`START`, overridden by `start`), β broadcast to K."""
-  values = {**START, **(start or {})}
+                 per_class_beta: bool = True, context=(), per_class_weights: bool = False,
+                 gate_size: int = 3) -> dict:
+  """Unconstrained starting parameters (`START`, overridden by `start`), β broadcast to K.
+
+  With `context`, the context weights start at 0; with `per_class_weights`, θ, b and the context
+  weights are one row per predicted class (GLFS's class interaction); `gate_size=5` adds the
+  gate's divergence and frame-count terms (at 0).
+  """
+  if gate_size not in (3, 5):
+    raise ValueError(f"gate_size must be 3 or 5; got {gate_size}")
+  values = dict(START)
+  values["gate"] = np.concatenate([START["gate"], np.zeros(gate_size - 3, np.float32)])
+  if context:
+    values["context_theta"] = np.zeros(len(context), np.float32)
+  values.update(start or {})
   unknown = set(values) - set(TRAINED)
   if unknown:
     raise ValueError(f"unknown learned-rule parameters to train {sorted(unknown)}; trained are "
                      f"{', '.join(TRAINED)}")
   if per_class_beta:
     values["beta"] = np.broadcast_to(np.asarray(values["beta"], np.float32), (num_classes,))
+  if per_class_weights:
+    for name, ndim in (("theta", 2), ("bias", 1), ("context_theta", 2)):
+      if name in values and np.ndim(values[name]) < ndim:
+        value = np.asarray(values[name], np.float32)
+        values[name] = np.broadcast_to(value, (num_classes,) + value.shape).copy()
   return unconstrain(values)
+
+
+def glfs_start(num_classes: int) -> dict:
+  """Unconstrained GLFS parameters at Bayes: `table = exp(u)`, u = 0."""
+  return {"table": jnp.zeros((num_classes, len(rules_lib.glfs_lib.DEPTH_EDGES) + 1,
+                               len(rules_lib.glfs_lib.ANGLE_EDGES) + 1), jnp.float32)}
 
 
 @dataclasses.dataclass
@@ -102,8 +127,7 @@ class FitResult:
   validation_miou: list = dataclasses.field(default_factory=list)
 
 
-def _loss_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float,
-             objective: str) -> Callable:
+def _loss_fn(data: dict, *, make: Callable, voxel_size: float, objective: str) -> Callable:
   frames = jax.tree.map(jnp.asarray, data["frames"])
   mask = jnp.asarray(data["mask"])
   coords = jnp.asarray(data["coords"], jnp.int32)
@@ -112,16 +136,16 @@ def _loss_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float,
   capacity = int(data["capacity"])
 
   def loss(params):
-    rule = rules_lib.learned({**fixed, **constrain(params)}, aggregate=aggregate)
+    rule = make(params)
     return tune.sequence_loss(rule, frames, camera, coords, labels, capacity=capacity,
                               voxel_size=voxel_size, mask=mask, objective=objective)
   return loss
 
 
-def _miou_fn(data: dict, *, fixed: dict, aggregate: str, voxel_size: float) -> Callable:
+def _miou_fn(data: dict, *, make: Callable, voxel_size: float) -> Callable:
   """`params → pooled map mIoU` of the batch's hard labels (one compiled `tune.sweep` call)."""
   def miou(params):
-    rule = rules_lib.learned({**fixed, **constrain(params)}, aggregate=aggregate)
+    rule = make(params)
     out = tune.sweep(data["frames"], data["camera"], data["coords"], data["labels"],
                      rules_lib.stack([rule]), capacity=int(data["capacity"]),
                      voxel_size=voxel_size, mask=data["mask"])
@@ -134,8 +158,10 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
         per_class_beta: bool = True, eps: float = 1e-12,
         alpha0: float = rules_lib.DEFAULT_ALPHA0, aggregate: str = "sum",
         voxel_size: float = 0.1, objective: str = "cross_entropy", select: str = "loss",
-        progress: Optional[Callable[[int, float, Optional[float]], None]] = None) -> FitResult:
-  """Fits the learned rule on `train` with Adam, stopping early on `validation`.
+        progress: Optional[Callable[[int, float, Optional[float]], None]] = None,
+        family: str = "learned", context=(), per_class_weights: bool = False,
+        gate_size: int = 3) -> FitResult:
+  """Fits the learned rule (or GLFS) on `train` with Adam, stopping early on `validation`.
 
   Args:
     train: the training batch (see the module docstring).
@@ -157,6 +183,13 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
       front ends where the loss and mIoU part ways. The patience counts evaluations without a
       better value of the selected measure; both are recorded.
     progress: called as `progress(step, train_loss, validation_loss or None)` after each step.
+    family: "learned" (§3.9) or "glfs" (§3.10: only its table is fitted, `table = exp(u)`;
+      `start`, `per_class_beta`, `context`, `per_class_weights` and `gate_size` are the learned
+      rule's and are ignored).
+    context: context features the learned rule's weight reads (`jaxfusion.context.FEATURES`);
+      the batches need `frames.rgb` for the image ones.
+    per_class_weights: the learned weight's θ, b and context weights per predicted class.
+    gate_size: 3 (agreement and spread) or 5 (also the divergence and the frame count).
 
   Returns:
     FitResult.
@@ -171,11 +204,25 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
   if select not in SELECTIONS:
     raise ValueError(f"select must be one of {SELECTIONS}; got {select!r}")
   tune.check_objective(objective)
+  if family not in FAMILIES:
+    raise ValueError(f"family must be one of {FAMILIES}; got {family!r}")
   num_classes = int(np.shape(train["frames"].probs)[-1])
   if int(np.shape(validation["frames"].probs)[-1]) != num_classes:
     raise ValueError("the training and validation batches must have the same classes (K)")
   fixed = {"eps": jnp.float32(eps), "alpha0": jnp.float32(alpha0)}
-  settings = dict(fixed=fixed, aggregate=aggregate, voxel_size=voxel_size, objective=objective)
+  context = tuple(context)
+  if family == "glfs":
+    fixed = {}
+    make = lambda p: rules_lib.glfs(jnp.exp(p["table"]), aggregate=aggregate)
+    values_of = lambda p: {"table": _plain(jnp.exp(p["table"])),
+                           "depth_edges": list(rules_lib.glfs_lib.DEPTH_EDGES),
+                           "angle_edges": list(rules_lib.glfs_lib.ANGLE_EDGES)}
+  else:
+    make = lambda p: rules_lib.learned({**fixed, **constrain(p)}, context=context,
+                                       aggregate=aggregate)
+    values_of = lambda p: {**{k: float(v) for k, v in fixed.items()},
+                           **{k: _plain(v) for k, v in constrain(p).items()}}
+  settings = dict(make=make, voxel_size=voxel_size, objective=objective)
   train_loss = _loss_fn(train, **settings)
   val_loss = jax.jit(_loss_fn(validation, **settings))
   optimizer = optax.adam(learning_rate)
@@ -186,7 +233,7 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, value
 
-  val_miou = _miou_fn(validation, fixed=fixed, aggregate=aggregate, voxel_size=voxel_size)
+  val_miou = _miou_fn(validation, make=make, voxel_size=voxel_size)
 
   def evaluate(params, step):
     """The validation loss, and the measure to maximise (−loss or mIoU)."""
@@ -199,7 +246,10 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     return loss, value
 
   started = time.perf_counter()
-  params = start_params(num_classes, start=start, per_class_beta=per_class_beta)
+  params = (glfs_start(num_classes) if family == "glfs" else
+            start_params(num_classes, start=start, per_class_beta=per_class_beta,
+                         context=context, per_class_weights=per_class_weights,
+                         gate_size=gate_size))
   opt_state = optimizer.init(params)
   history, miou_history, losses, waited, step = [], [], [], 0, 0
   best = (evaluate(params, 0)[1], 0, params)
@@ -216,9 +266,10 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
         waited += 1
     if progress is not None:
       progress(step, losses[-1], current)
-  values = {**{k: float(v) for k, v in fixed.items()},
-            **{k: _plain(v) for k, v in constrain(best[2]).items()}}
-  return FitResult(params=values, rule=rules_lib.learned(values, aggregate=aggregate),
+  values = values_of(best[2])
+  if family == "learned" and context:
+    values["context"] = list(context)
+  return FitResult(params=values, rule=rule_of(family, values, aggregate=aggregate),
                    train_losses=losses, validation=history, best_step=best[1], steps_run=step,
                    stopped_early=step < steps, seconds=time.perf_counter() - started,
                    validation_miou=miou_history)
@@ -248,8 +299,42 @@ def weight_grid(hparams: dict, alpha_pred: jax.Array, max_prob: jax.Array, *,
     rest = (1.0 - top) / (num_classes - 1)
     probs = jnp.full(num_classes, rest).at[0].set(top)
     var = jnp.zeros(num_classes).at[0].set(jnp.maximum(jnp.exp(-alpha) - hparams["eps"], 0.0))
-    return learned_lib.pixel_weight(learned_lib.features(probs, var, hparams["eps"]), hparams)
+    return learned_lib.pixel_weight(learned_lib.features(probs, var, hparams["eps"]), hparams,
+                                    pred=jnp.argmax(probs))
   return jax.vmap(lambda a: jax.vmap(lambda p: one(a, p))(max_prob))(alpha_pred)
+
+
+def rule_of(family: str, params: dict, *, aggregate: str = "sum") -> rules_lib.FusionRule:
+  """The FusionRule of a fitted family's parameters ("learned" or "glfs", as `params.json`
+  stores them)."""
+  if family == "glfs":
+    return rules_lib.glfs(**params, aggregate=aggregate)
+  if family == "learned":
+    return rules_lib.learned(params, aggregate=aggregate)
+  raise ValueError(f"unknown rule family {family!r}; the fitted families are {FAMILIES}")
+
+
+def load_rule(path: str, *, aggregate: str = "sum") -> tuple:
+  """`(family, params)` of a `params.json` of `jaxfusion learn-rule` (either family).
+
+  Raises:
+    ValueError: not such a file, or parameters the family refuses.
+  """
+  try:
+    with open(path, encoding="utf-8") as f:
+      payload = json.load(f)
+  except json.JSONDecodeError as e:
+    raise ValueError(f"{path} is not a learned-rule parameter file (not JSON: {e})") from e
+  params = payload.get("params") if isinstance(payload, dict) else None
+  family = payload.get("rule", "learned") if isinstance(payload, dict) else None
+  if not isinstance(params, dict) or family not in FAMILIES:
+    raise ValueError(f"{path} is not a learned-rule parameter file (no 'params' object or an "
+                     f"unknown 'rule' {family!r})")
+  try:
+    rule_of(family, params, aggregate=aggregate)
+  except (TypeError, ValueError) as e:
+    raise ValueError(f"{path}: {e}") from e
+  return family, params
 
 
 def load_params(path: str) -> dict:

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfusion.camera import Camera
+from jaxfusion.context import IMAGE_FEATURES as _IMAGE_FEATURES
 from jaxfusion.rules import base as rules_base
 
 _RIGID_TOL = 1e-3
@@ -127,7 +128,7 @@ def _min_values(arrays, sample: bool) -> list:
 
 
 def check_frame(frame, *, num_classes: int, requires_var: bool, rule_name: str,
-                batch_dims: int = 0, sample: bool = False) -> None:
+                batch_dims: int = 0, sample: bool = False, context: tuple = ()) -> None:
   """Checks one Frame (`batch_dims=0`) or a stack of frames (`batch_dims=1`).
 
   Shapes, dtypes and poses are always checked in full; with `sample=True` the signs of `probs`
@@ -158,6 +159,17 @@ def check_frame(frame, *, num_classes: int, requires_var: bool, rule_name: str,
   elif requires_var:
     raise ValueError(f"rule {rule_name!r} weights observations by their epistemic variance: "
                      "pass Frame(..., var=...) (e.g. from jaxfusion.mc_moments(samples))")
+  rgb = getattr(frame, "rgb", None)
+  if rgb is not None:
+    if np.shape(rgb) != np.shape(depth) + (3,):
+      raise ValueError(f"rgb must have shape {lead}H, W, 3) with the depth's (H, W) "
+                       f"{np.shape(depth)[batch_dims:]}; got shape {np.shape(rgb)}")
+    if _dtype(rgb) != np.uint8 and not jnp.issubdtype(_dtype(rgb), jnp.floating):
+      raise TypeError(f"rgb must be uint8 or float in [0, 1]; got dtype {_dtype(rgb)}")
+  elif any(name in _IMAGE_FEATURES for name in context):
+    raise ValueError(f"rule {rule_name!r} reads image context features "
+                     f"{[n for n in context if n in _IMAGE_FEATURES]}: pass "
+                     "Frame(..., rgb=...), the colour image registered to the depth")
   if batch_dims == 0 and np.shape(depth)[0] * np.shape(depth)[1] == 0:
     raise ValueError(f"depth must have at least one pixel; got shape {np.shape(depth)}")
   if _is_concrete(T):

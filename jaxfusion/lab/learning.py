@@ -16,6 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
+from jaxfusion import context as context_lib
 from jaxfusion import learn
 from jaxfusion import tune
 from jaxfusion.lab import figures
@@ -75,6 +76,18 @@ def add_parser(subparsers) -> None:
   parser.add_argument("--eval-every", type=int, default=10)
   parser.add_argument("--patience", type=int, default=4)
   parser.add_argument("--scalar-beta", action="store_true", help="one β (default: per class)")
+  parser.add_argument("--family", choices=learn.FAMILIES, default="learned",
+                      help="the rule family to fit: the learned rule (docs/equations.md §3.9) or "
+                           "GLFS (§3.10, a weight per class × depth bin × incidence bin)")
+  parser.add_argument("--context", nargs="*", default=[], metavar="FEATURE",
+                      help="per-pixel context features the learned weight reads (docs/equations.md "
+                           "§2.5): " + ", ".join(context_lib.FEATURES) + "; or 'geometry', "
+                           "'image', 'all'")
+  parser.add_argument("--per-class-weights", action="store_true",
+                      help="one row of weights per predicted class (θ, b, context weights)")
+  parser.add_argument("--gate-size", type=int, choices=(3, 5), default=3,
+                      help="3: the gate reads agreement and spread; 5: also the frame's "
+                           "divergence from the voxel and the voxel's frame count")
   parser.add_argument("--select", choices=learn.SELECTIONS, default="loss",
                       help="what early stopping keeps: the lowest validation loss or the "
                            "highest validation map mIoU")
@@ -84,6 +97,20 @@ def add_parser(subparsers) -> None:
                            "6 steps")
   tuning.add_data_args(parser, rule_help=argparse.SUPPRESS, layout_seeds=False)
   parser.set_defaults(func=command, front_end="shipped")
+
+
+# Named groups of context features (`--context geometry image` etc.).
+CONTEXT_GROUPS = {"geometry": ("depth", "incidence", "depth_edge", "label_edge", "radius"),
+                  "image": context_lib.IMAGE_FEATURES, "all": context_lib.FEATURES}
+
+
+def context_names(names: Sequence[str]) -> tuple:
+  """Feature names with the groups of `CONTEXT_GROUPS` expanded, in `FEATURES` order."""
+  chosen = set()
+  for name in names:
+    chosen.update(CONTEXT_GROUPS.get(name, (name,)))
+  return context_lib.check_names([n for n in context_lib.FEATURES if n in chosen] +
+                                 sorted(chosen - set(context_lib.FEATURES)))
 
 
 def _check_seeds(train: Sequence[int], validation: Sequence[int]) -> None:
@@ -142,11 +169,13 @@ def command(args) -> int:
   result = learn.fit(train, validation, steps=args.steps, learning_rate=args.learning_rate,
                      eval_every=args.eval_every, patience=args.patience,
                      per_class_beta=not args.scalar_beta, aggregate=args.aggregate,
-                     voxel_size=args.voxel_size, select=args.select, progress=progress)
+                     voxel_size=args.voxel_size, select=args.select, progress=progress,
+                     family=args.family, context=context_names(args.context),
+                     per_class_weights=args.per_class_weights, gate_size=args.gate_size)
   bar.close()
   os.makedirs(args.out, exist_ok=True)
   reports.write_json(os.path.join(args.out, "params.json"),
-                     {"rule": "learned", "params": result.params}, indent=2)
+                     {"rule": args.family, "params": result.params}, indent=2)
   record = {
       "command": command_line(args),
       "data": {"train": train["names"], "validation": validation["names"],
@@ -159,15 +188,18 @@ def command(args) -> int:
       "select": args.select, "validation_miou": result.validation_miou,
       "seconds": {"data": loaded, "fit": result.seconds,
                   "total": time.perf_counter() - started},
+      "family": args.family, "num_parameters": int(sum(
+          np.size(v) for k, v in result.params.items() if k not in ("eps", "alpha0", "context"))),
       "params": result.params}
   reports.write_json(os.path.join(args.out, "record.json"), record, indent=2)
   figures.learned_rule_losses(os.path.join(args.out, "loss.png"), result)
-  figures.learned_rule_weights(os.path.join(args.out, "weights.png"), result.rule.hparams,
-                               num_classes=train["num_classes"])
+  if args.family == "learned":
+    figures.learned_rule_weights(os.path.join(args.out, "weights.png"), result.rule.hparams,
+                                 num_classes=train["num_classes"])
   best = dict(result.validation)[result.best_step]
-  print(f"learned rule: best validation loss {best:.4f} at step {result.best_step} of "
+  print(f"{args.family}: best validation loss {best:.4f} at step {result.best_step} of "
         f"{result.steps_run} ({result.seconds:.0f} s fitting); wrote {args.out}/params.json, "
-        f"record.json, loss.png, weights.png")
+        f"record.json, loss.png" + (", weights.png" if args.family == "learned" else ""))
   return 0
 
 

@@ -100,7 +100,8 @@ def load_calibration_sequence(spec: str, *, num_frames: int, height: int, width:
   frames = fusion.Frame(np.asarray(seq.depth, np.float32),
                         np.asarray(seq.T_world_cam, np.float32),
                         np.asarray(preds["mean"], np.float32),
-                        None if var is None else np.asarray(var, np.float32))
+                        None if var is None else np.asarray(var, np.float32),
+                        np.asarray(seq.rgb, np.uint8))
   return {"name": datasets.unit_name(seq.name, seed), "frames": frames, "camera": seq.camera,
           "gt": gt, "num_classes": num_classes, "source": source,
           "capacity": state_lib.capacity_for(len(gt["labels"]))}

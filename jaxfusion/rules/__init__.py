@@ -4,6 +4,8 @@
     rules.robust(beta=0.3, eps=1e-12, regularize=True, dirichlet=True)   # D+R
     rules.robust(beta=[0.1, 0.4, …])   # per-class β (and ε, α₀): one value per class, (K,)
     rules.learned(params)               # weighted, regularised Bayes with learned weights
+    rules.learned(params, context=("depth", "incidence", ...))   # … reading per-pixel context
+    rules.glfs(table)                   # GLFS: a weight per class × depth bin × incidence bin
 """
 
 from jaxfusion.rules.base import AGGREGATIONS
@@ -14,6 +16,8 @@ from jaxfusion.rules.base import stack
 from jaxfusion.rules.baselines import bayes
 from jaxfusion.rules.baselines import sum_labels
 from jaxfusion.rules.baselines import sum_probs
+from jaxfusion.rules import glfs as glfs_lib
+from jaxfusion.rules.glfs import glfs
 from jaxfusion.rules.learned import learned
 from jaxfusion.rules.learned import special_case as learned_special_case
 from jaxfusion.rules.robust import DEFAULT_ALPHA0
@@ -50,13 +54,14 @@ def by_name(name: str, **hparams) -> FusionRule:
 
 def display_name(rule: FusionRule) -> str:
   """The paper's name of a rule ("Sum probs", "Bayesian", "D+R", …)."""
-  return PAPER_RULES.get(rule.name, ("Learned", None) if rule.name == "learned"
-                         else (rule.name, None))[0]
+  names = {"learned": "Learned", "glfs": "GLFS"}
+  return PAPER_RULES.get(rule.name, (names.get(rule.name, rule.name), None))[0]
 
 
 __all__ = sorted([
     "AGGREGATIONS", "DEFAULT_ALPHA0", "FusionRule", "PAPER_RULES", "PixelTerms",
-    "VoxelObservation", "bayes", "by_name", "display_name", "learned", "learned_special_case",
+    "VoxelObservation", "bayes", "by_name", "display_name", "glfs", "glfs_lib", "learned",
+    "learned_special_case",
     "robust", "stack",
     "sum_labels",
     "sum_probs",

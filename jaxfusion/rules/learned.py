@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxfusion import context as context_lib
 from jaxfusion import numerics
 from jaxfusion.rules import base
 from jaxfusion.rules import robust as robust_lib
@@ -42,7 +43,7 @@ FEATURE_NAMES = ("max_prob", "margin", "entropy", "alpha_pred", "sqrt_sum_var", 
 ON = 30.0
 # Scale of the α feature: α of a typical MC-dropout pixel lies in about 2–12.
 _ALPHA_SCALE = 10.0
-PARAM_NAMES = ("theta", "bias", "mix", "gate", "beta", "eps", "alpha0")
+PARAM_NAMES = ("theta", "bias", "context_theta", "mix", "gate", "beta", "eps", "alpha0")
 
 
 def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
@@ -70,41 +71,118 @@ def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
   ]).astype(jnp.float32)
 
 
-def pixel_weight(phi: jax.Array, hparams: dict) -> jax.Array:
-  """`w = sigmoid(θ · φ + b)` for `(..., 6)` features: the weight of a pixel's log-likelihood."""
-  return jax.nn.sigmoid(jnp.sum(phi * hparams["theta"], axis=-1) + hparams["bias"])
+# Fixed scales of the context features (docs/equations.md §2.5) in the weight: each about [0, 1]
+# on indoor frames, so that one step size fits every weight.
+CONTEXT_SCALE = {"depth": 0.25, "incidence": 1.0, "depth_edge": 1.0 / 16, "label_edge": 1.0 / 16,
+                 "radius": 1.0, "sharpness": 4.0, "luminance": 1.0, "clipped": 1.0}
+# Scale of the voxel's frame count in the gate: log1p(n) / log1p(32).
+_FRAMES_SCALE = 1.0 / math.log1p(32.0)
+
+
+def pixel_weight(phi: jax.Array, hparams: dict, ctx: jax.Array = None,
+                 pred: jax.Array = None) -> jax.Array:
+  """`w = sigmoid(θ_ĉ · φ + θᶜ_ĉ · ψ + b_ĉ)`: the weight of a pixel's log-likelihood.
+
+  Args:
+    phi: `(6,)` moment features (`features`).
+    hparams: the rule's parameters; `theta` `(6,)` or per class `(K, 6)`, `bias` `()` or `(K,)`,
+      `context_theta` `(F,)` or `(K, F)` (only read when `ctx` is given).
+    ctx: `(F,)` scaled context features ψ (`scaled_context`), or None.
+    pred: `()` int predicted class ĉ, needed when a parameter is per class.
+  """
+  def pick(x, per_class_ndim):
+    return x[pred] if jnp.ndim(x) == per_class_ndim else x
+  z = jnp.sum(phi * pick(hparams["theta"], 2), axis=-1) + pick(hparams["bias"], 1)
+  if ctx is not None:
+    z = z + jnp.sum(ctx * pick(hparams["context_theta"], 2), axis=-1)
+  return jax.nn.sigmoid(z)
+
+
+def scaled_context(ctx: jax.Array, names: tuple) -> jax.Array:
+  """`(…, F)` context features times their fixed `CONTEXT_SCALE`."""
+  return ctx * jnp.asarray([CONTEXT_SCALE[n] for n in names], jnp.float32)
 
 
 def _check_fixed_shapes(hparams):
-  """The shapes that do not depend on K: θ `(6,)`, γ `(3,)`, and b, δ, ε, α₀ scalars."""
+  """The shapes that do not depend on K: θ `(6,)` or `(·, 6)`, γ `(3,)` or `(5,)`, b `()` or
+  `(·,)`, and δ, ε, α₀ scalars."""
   theta, gate = jnp.shape(hparams["theta"]), jnp.shape(hparams["gate"])
-  if theta != (NUM_FEATURES,) or gate != (3,):
-    raise ValueError(f"theta must have shape ({NUM_FEATURES},) and gate (3,); got {theta} and "
-                     f"{gate}")
-  for name in ("bias", "mix", "eps", "alpha0"):
+  if theta[-1:] != (NUM_FEATURES,) or len(theta) > 2 or gate not in ((3,), (5,)):
+    raise ValueError(f"theta must have shape ({NUM_FEATURES},) or (K, {NUM_FEATURES}) and gate "
+                     f"(3,) or (5,); got {theta} and {gate}")
+  if jnp.ndim(hparams["bias"]) > 1:
+    raise ValueError(f"bias must be a scalar or (K,); got shape {jnp.shape(hparams['bias'])}")
+  for name in ("mix", "eps", "alpha0"):
     if jnp.shape(hparams[name]) != ():
       raise ValueError(f"{name} must be a scalar; got shape {jnp.shape(hparams[name])}")
 
 
+def _check_context_shape(hparams, num_features):
+  shape = jnp.shape(hparams["context_theta"])
+  if shape[-1:] != (num_features,) or len(shape) > 2:
+    raise ValueError(f"context_theta must have shape ({num_features},) or (K, {num_features}), "
+                     f"one weight per context feature; got {shape}")
+
+
 def _check_shapes(hparams, num_classes):
-  base.check_class_shapes(hparams, num_classes, ("beta",))
+  base.check_class_shapes(hparams, num_classes, ("beta", "bias"))
   _check_fixed_shapes(hparams)
+  for name in ("theta", "context_theta"):
+    if name not in hparams:
+      continue
+    shape = jnp.shape(hparams[name])
+    if len(shape) == 2 and shape[0] != num_classes:
+      raise ValueError(f"{name} has shape {shape} but the map has K = {num_classes} classes; "
+                       f"give one row per class ({num_classes}, {shape[1]}) or one shared row")
 
 
 def _init(num_classes, hparams):
   _check_shapes(hparams, num_classes)
-  return robust_lib.dirichlet_row(num_classes, hparams)
+  row = robust_lib.dirichlet_row(num_classes, hparams)
+  if jnp.shape(hparams["gate"]) == (5,):
+    row["frames"] = jnp.zeros(1, jnp.float32)
+  return row
 
 
-def _observe(probs, var, hparams):
+def _observe_terms(probs, var, hparams, ctx, names):
   _check_shapes(hparams, probs.shape[-1])
   shifted = jnp.clip(var, 0.0, 0.25) + hparams["eps"]
-  w = pixel_weight(features(probs, var, hparams["eps"]), hparams)
+  pred = jnp.argmax(probs)
+  psi = None if ctx is None else scaled_context(ctx, names)
+  w = pixel_weight(features(probs, var, hparams["eps"]), hparams, psi, pred)
   loglik = numerics.safe_log(robust_lib.regularize(probs, hparams["beta"]))
   wloglik = w * loglik
   return base.PixelTerms(
       sums={"wloglik": wloglik, "walpha_loglik": -jnp.log(shifted) * wloglik},
       maxes={"neg_shifted_var": -shifted})
+
+
+def _observe(probs, var, hparams):
+  return _observe_terms(probs, var, hparams, None, ())
+
+
+def _observer_with_context(names):
+  def observe(probs, var, ctx, hparams):
+    return _observe_terms(probs, var, hparams, ctx, names)
+  return observe
+
+
+# One observe kernel per tuple of context names, so that rules with the same context share it
+# (the same static field: stacking and the jit cache see equal rules).
+_CONTEXT_OBSERVERS = {}
+
+
+def _context_observer(names):
+  if names not in _CONTEXT_OBSERVERS:
+    _CONTEXT_OBSERVERS[names] = _observer_with_context(names)
+  return _CONTEXT_OBSERVERS[names]
+
+
+def _js_divergence(p, q):
+  """Jensen–Shannon divergence of two `(K,)` distributions over log 2, in [0, 1]."""
+  m = 0.5 * (p + q)
+  kl = lambda a: jnp.sum(jnp.where(a > 0, a * (numerics.safe_log(a) - numerics.safe_log(m)), 0.0))
+  return jnp.clip(0.5 * (kl(p) + kl(q)) / math.log(2.0), 0.0, 1.0)
 
 
 def _update(row, obs, hparams):
@@ -114,12 +192,21 @@ def _update(row, obs, hparams):
   keep = (1.0 - mix) + mix * (alpha_prev / safe)
   observation = (1.0 - mix) * obs.sums["wloglik"] + mix * (obs.sums["walpha_loglik"] / safe)
   prior = jax.nn.softmax(row["logp"])
-  agree = jnp.sum(prior * jax.nn.softmax(observation))
+  frame_dist = jax.nn.softmax(observation)
+  agree = jnp.sum(prior * frame_dist)
   spread = numerics.entropy(prior) / math.log(prior.shape[-1])
   gamma = hparams["gate"]
-  gate = jax.nn.sigmoid(gamma[0] + gamma[1] * agree + gamma[2] * spread)
-  return {"logp": numerics.normalize_log(keep * row["logp"] + gate * observation),
-          "alpha_bar": alpha_bar}
+  logit = gamma[0] + gamma[1] * agree + gamma[2] * spread
+  out = {}
+  if gamma.shape[0] == 5:
+    seen = row["frames"][0]
+    logit = (logit + gamma[3] * _js_divergence(frame_dist, prior)
+             + gamma[4] * jnp.log1p(seen) * _FRAMES_SCALE)
+    out["frames"] = row["frames"] + 1.0
+  gate = jax.nn.sigmoid(logit)
+  out.update(logp=numerics.normalize_log(keep * row["logp"] + gate * observation),
+             alpha_bar=alpha_bar)
+  return out
 
 
 def _confidence(row):
@@ -136,14 +223,21 @@ def _concrete_checks(hparams):
   robust_lib.check_hparams(hparams["beta"], hparams["eps"], hparams["alpha0"])
 
 
-def learned(params: dict = None, *, aggregate: str = "sum", **overrides) -> base.FusionRule:
+def learned(params: dict = None, *, context=(), aggregate: str = "sum",
+            **overrides) -> base.FusionRule:
   """The learned rule of docs/equations.md §3.9 (module docstring), from a parameter dict.
 
   Args:
-    params: any of `theta (6,)`, `bias ()`, `mix ()` δ ∈ [0, 1], `gate (3,)` γ, `beta ()` or
-      `(K,)` ∈ [0, 1], `eps ()` > 0, `alpha0 ()` ≥ 0; missing ones take the D+R values (θ = 0,
-      b = 30, δ = 1, γ = (30, 0, 0), β = 0.3, ε = 1e-12, α₀ = −log 1e-3). Values may be lists,
-      NumPy or JAX arrays, or tracers (for `grad` and `vmap`).
+    params: any of `theta` `(6,)` or per class `(K, 6)`, `bias` `()` or `(K,)`, `mix` `()` δ ∈
+      [0, 1], `gate` `(3,)` or `(5,)` γ (the last two read the frame's divergence from the voxel
+      and the voxel's frame count), `beta` `()` or `(K,)` ∈ [0, 1], `eps` `()` > 0, `alpha0` `()`
+      ≥ 0, and with `context` `context_theta` `(F,)` or `(K, F)`; missing ones take the D+R
+      values (θ = 0, b = 30, δ = 1, γ = (30, 0, 0), β = 0.3, ε = 1e-12, α₀ = −log 1e-3, context
+      weights 0). Values may be lists, NumPy or JAX arrays, or tracers (for `grad` and `vmap`).
+      A `"context"` entry (a list of names, as `params.json` stores it) is the same as the
+      keyword.
+    context: names of per-pixel context features the weight reads (`jaxfusion.context.FEATURES`,
+      docs/equations.md §2.5), F of them; static (a different tuple is a different program).
     aggregate: "sum" or "mean" (docs/equations.md §2.4).
     **overrides: the same names as keywords, applied over `params`.
 
@@ -152,26 +246,44 @@ def learned(params: dict = None, *, aggregate: str = "sum", **overrides) -> base
     variance).
 
   Raises:
-    ValueError: an unknown parameter name, a wrong shape, a non-finite value, or δ, β, ε, α₀
-      out of range (checked where concrete).
+    ValueError: an unknown parameter or context name, a wrong shape, a non-finite value, or δ,
+      β, ε, α₀ out of range (checked where concrete).
   """
+  given = {**(params or {}), **overrides}
+  if "context" in given:
+    stored = tuple(given.pop("context"))
+    if context and tuple(context) != stored:
+      raise ValueError(f"context given twice: {list(context)} and {list(stored)}")
+    context = stored
+  context = context_lib.check_names(context)
   values = {"theta": np.zeros(NUM_FEATURES, np.float32), "bias": ON, "mix": 1.0,
             "gate": np.array([ON, 0.0, 0.0], np.float32), "beta": robust_lib.DEFAULT_BETA,
             "eps": robust_lib.DEFAULT_EPS, "alpha0": robust_lib.DEFAULT_ALPHA0}
-  given = {**(params or {}), **overrides}
+  if context:
+    values["context_theta"] = np.zeros(len(context), np.float32)
   unknown = set(given) - set(values)
   if unknown:
+    extra = ("; context_theta needs context=(...)" if "context_theta" in unknown and not context
+             else "")
     raise ValueError(f"unknown learned-rule parameters {sorted(unknown)}; the names are "
-                     f"{', '.join(PARAM_NAMES)}")
+                     f"{', '.join(PARAM_NAMES)}{extra}")
   values.update(given)
   hparams = {name: jnp.asarray(value, jnp.float32) for name, value in values.items()}
   hparams["beta"] = base.as_class_leaf(values["beta"], "beta")
   _check_fixed_shapes(hparams)
+  if context:
+    _check_context_shape(hparams, len(context))
   _concrete_checks(hparams)
   return base.FusionRule(
-      hparams=hparams, name="learned", init=_init, observe=_observe, update=_update,
+      hparams=hparams, name="learned", init=_init,
+      observe=_context_observer(context) if context else _observe, update=_update,
       posterior=log_posterior, confidence=_confidence, requires_var=True,
-      aggregate=base.check_aggregate(aggregate))
+      aggregate=base.check_aggregate(aggregate), context=context)
+
+
+def num_parameters(rule: base.FusionRule) -> int:
+  """Number of values in the rule's fitted parameters (all but ε and α₀)."""
+  return int(sum(np.size(v) for k, v in rule.hparams.items() if k not in ("eps", "alpha0")))
 
 
 def special_case(name: str, *, beta=robust_lib.DEFAULT_BETA) -> dict:

@@ -1,0 +1,196 @@
+"""Per-pixel context features of a frame, for rules that ask for them (docs/equations.md §2.5).
+
+A rule names what it reads in its static `context` tuple (names from `FEATURES`); `fuse_frame`
+then calls `pixel_context` once per frame and hands each pixel's `(F,)` vector to the rule's
+`observe`. Everything here is computed from the frame itself: depth, camera, the predicted labels
+(argmax of `probs`) and the colour image. Rules that ask for nothing never reach this module.
+
+Shape legend: H×W pixels, K classes, F requested features.
+"""
+
+from typing import Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+
+from jaxfusion import camera as camera_lib
+
+# Every feature, in a fixed order (a rule's `context` may name any of them, in any order).
+FEATURES = ("depth", "incidence", "depth_edge", "label_edge", "radius", "sharpness",
+            "luminance", "clipped")
+# Features that read the colour image (`Frame.rgb`).
+IMAGE_FEATURES = ("sharpness", "luminance", "clipped")
+# Relative depth step between 4-neighbours that counts as a discontinuity (τ).
+JUMP = 0.05
+# Cap of the edge distances, in pixels (D).
+MAX_EDGE_DISTANCE = 16
+# Side of the window of the image features.
+WINDOW = 5
+# Channel levels (of 255) at and beyond which a pixel counts as clipped.
+CLIP_HIGH, CLIP_LOW = 250.0 / 255.0, 5.0 / 255.0
+
+
+def check_names(names: Sequence[str]) -> tuple:
+  """`names` as a tuple, or ValueError naming the unknown or repeated ones."""
+  names = tuple(names)
+  unknown = [n for n in names if n not in FEATURES]
+  if unknown:
+    raise ValueError(f"unknown context features {unknown}; the features are "
+                     f"{', '.join(FEATURES)}")
+  if len(set(names)) != len(names):
+    raise ValueError(f"context features must not repeat; got {list(names)}")
+  return names
+
+
+def needs_rgb(names: Sequence[str]) -> bool:
+  """True if any of `names` reads the colour image."""
+  return any(n in IMAGE_FEATURES for n in names)
+
+
+def _shift(x, du: int, dv: int, fill):
+  """`x` moved so that out[v, u] = x[v + dv, u + du], `fill` outside the image."""
+  h, w = x.shape
+  padded = jnp.pad(x, ((1, 1), (1, 1)), constant_values=fill)
+  return jax.lax.dynamic_slice(padded, (1 + dv, 1 + du), (h, w))
+
+
+_NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1))
+
+
+def _discontinuity(depth, ok, du, dv):
+  """`(H, W) bool`: a discontinuity between each pixel and its neighbour (du, dv) (False where
+  the neighbour lies outside the image)."""
+  inside = _shift(jnp.ones(depth.shape, bool), du, dv, False)
+  z_q = _shift(depth, du, dv, 0.0)
+  ok_q = _shift(ok, du, dv, False)
+  jump = jnp.abs(depth - z_q) > JUMP * jnp.minimum(depth, z_q)
+  return inside & (~ok | ~ok_q | jump)
+
+
+def _edge_distance(edges):
+  """Capped Chebyshev distance to the nearest True pixel (`D` where none is nearer)."""
+  dist = jnp.zeros(edges.shape, jnp.float32)
+  reach = edges.astype(jnp.float32)
+  for _ in range(MAX_EDGE_DISTANCE):
+    dist = dist + (1.0 - reach)
+    reach = jax.lax.reduce_window(reach, 0.0, jax.lax.max, (3, 3), (1, 1), "SAME")
+  return dist
+
+
+def _window_mean(x):
+  """Mean of `x` over the WINDOW×WINDOW window at each pixel, cut to the image."""
+  dims, strides = (WINDOW, WINDOW), (1, 1)
+  total = jax.lax.reduce_window(x, 0.0, jax.lax.add, dims, strides, "SAME")
+  count = jax.lax.reduce_window(jnp.ones_like(x), 0.0, jax.lax.add, dims, strides, "SAME")
+  return total / count
+
+
+def _incidence(points, depth, ok, breaks):
+  """`cos θ` between the depth normal and the viewing ray (docs/equations.md §2.5)."""
+  def tangent(axis_plus, axis_minus):
+    (du_p, dv_p), (du_m, dv_m) = axis_plus, axis_minus
+    x_p = jnp.stack([_shift(points[..., c], du_p, dv_p, 0.0) for c in range(3)], -1)
+    x_m = jnp.stack([_shift(points[..., c], du_m, dv_m, 0.0) for c in range(3)], -1)
+    ok_p, ok_m = ~breaks[axis_plus], ~breaks[axis_minus]
+    inside_p = _shift(jnp.ones(depth.shape, bool), du_p, dv_p, False)
+    inside_m = _shift(jnp.ones(depth.shape, bool), du_m, dv_m, False)
+    ok_p, ok_m = ok_p & inside_p, ok_m & inside_m
+    g = jnp.where((ok_p & ok_m)[..., None], x_p - x_m,
+                  jnp.where(ok_p[..., None], x_p - points, points - x_m))
+    return g, ok_p | ok_m
+
+  g_u, has_u = tangent((1, 0), (-1, 0))
+  g_v, has_v = tangent((0, 1), (0, -1))
+  normal = jnp.cross(g_u, g_v)
+  norm_n = jnp.linalg.norm(normal, axis=-1)
+  norm_x = jnp.linalg.norm(points, axis=-1)
+  defined = ok & has_u & has_v & (norm_n > 0) & (norm_x > 0)
+  cos = jnp.abs(jnp.sum(normal * points, -1)) / jnp.where(defined, norm_n * norm_x, 1.0)
+  return jnp.where(defined, jnp.clip(cos, 0.0, 1.0), 1.0)
+
+
+def _luminance_and_clipped(rgb):
+  rgb = jnp.asarray(rgb)
+  if rgb.dtype == jnp.uint8:
+    rgb = rgb.astype(jnp.float32) / 255.0
+  rgb = jnp.clip(jnp.where(jnp.isfinite(rgb), rgb.astype(jnp.float32), 0.0), 0.0, 1.0)
+  lum = rgb @ jnp.array([0.299, 0.587, 0.114], jnp.float32)
+  top = jnp.max(rgb, axis=-1)
+  clipped = ((top >= CLIP_HIGH) | (top <= CLIP_LOW)).astype(jnp.float32)
+  return lum, clipped
+
+
+def _sharpness(lum):
+  padded = jnp.pad(lum, 1, mode="edge")
+  lap = (padded[1:-1, 2:] + padded[1:-1, :-2] + padded[2:, 1:-1] + padded[:-2, 1:-1]
+         - 4.0 * lum)
+  return jnp.sqrt(_window_mean(lap * lap))
+
+
+def pixel_context(depth: jax.Array, probs: jax.Array, camera: camera_lib.Camera,
+                  names: Sequence[str], rgb: Optional[jax.Array] = None) -> jax.Array:
+  """The context features `names` of every pixel of one frame (docs/equations.md §2.5).
+
+  Pure and jittable; `names` is static. Holes (depth 0, negative, non-finite) and non-finite
+  probabilities or colours give finite values.
+
+  Args:
+    depth: `(H, W)` float z-depth in metres.
+    probs: `(H, W, K)` float class probabilities (their argmax is the predicted label image).
+    camera: pinhole intrinsics.
+    names: the features, a sub-sequence of `FEATURES` in any order (F of them).
+    rgb: `(H, W, 3)` uint8 or float in [0, 1] colour image; needed for `IMAGE_FEATURES`.
+
+  Returns:
+    `(H, W, F) float32`, feature f in channel f.
+
+  Raises:
+    ValueError: unknown or repeated names, or an image feature without `rgb`.
+  """
+  names = check_names(names)
+  if needs_rgb(names) and rgb is None:
+    raise ValueError(f"context features {[n for n in names if n in IMAGE_FEATURES]} read the "
+                     "colour image: pass Frame(..., rgb=...)")
+  depth = jnp.asarray(depth, jnp.float32)
+  ok = jnp.isfinite(depth) & (depth > 0)
+  z = jnp.where(ok, depth, 0.0)
+  out = {}
+  breaks = None
+  if {"incidence", "depth_edge"} & set(names):
+    breaks = {d: _discontinuity(z, ok, *d) for d in _NEIGHBOURS}
+  if "depth" in names:
+    out["depth"] = z
+  if "incidence" in names:
+    out["incidence"] = _incidence(camera_lib.backproject(z, camera), z, ok, breaks)
+  if "depth_edge" in names:
+    edges = breaks[(1, 0)] | breaks[(-1, 0)] | breaks[(0, 1)] | breaks[(0, -1)]
+    out["depth_edge"] = _edge_distance(edges)
+  if "label_edge" in names:
+    p = jnp.asarray(probs, jnp.float32)
+    label = jnp.argmax(jnp.where(jnp.isfinite(p), jnp.maximum(p, 0.0), 1.0 / p.shape[-1]), -1)
+    edges = jnp.zeros(label.shape, bool)
+    for du, dv in _NEIGHBOURS:
+      inside = _shift(jnp.ones(label.shape, bool), du, dv, False)
+      edges = edges | (inside & (label != _shift(label, du, dv, -1)))
+    out["label_edge"] = _edge_distance(edges)
+  if "radius" in names:
+    h, w = z.shape
+    ru = (jnp.arange(w, dtype=jnp.float32)[None, :] - camera.cx) / camera.fx
+    rv = (jnp.arange(h, dtype=jnp.float32)[:, None] - camera.cy) / camera.fy
+    corners_u = (jnp.array([0.0, w - 1.0]) - camera.cx) / camera.fx
+    corners_v = (jnp.array([0.0, h - 1.0]) - camera.cy) / camera.fy
+    r_max = jnp.sqrt(jnp.max(corners_u**2)[None] + jnp.max(corners_v**2)[None])[0]
+    out["radius"] = jnp.sqrt(ru * ru + rv * rv) / jnp.maximum(r_max, 1e-12)
+  if needs_rgb(names):
+    lum, clipped = _luminance_and_clipped(rgb)
+    if "sharpness" in names:
+      out["sharpness"] = _sharpness(lum)
+    if "luminance" in names:
+      out["luminance"] = _window_mean(lum)
+    if "clipped" in names:
+      out["clipped"] = _window_mean(clipped)
+  shape = z.shape
+  return jnp.stack([jnp.broadcast_to(out[n], shape).astype(jnp.float32) for n in names], -1)
+
+
+pixel_context_jit = jax.jit(pixel_context, static_argnames=("names",))
