@@ -25,11 +25,16 @@ Definitions (a GT voxel's label y is the majority of its GT pixel labels):
 Shape legend: T frames, H×W pixels, N = H·W, K classes, G GT voxels, P pixel observations.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxfusion import camera as camera_lib
+from jaxfusion import context as context_lib
+from jaxfusion.rules.learned import FEATURE_NAMES as MOMENT_FEATURES
+from jaxfusion.rules.learned import features as moment_features
 from jaxfusion.rules.robust import DEFAULT_EPS
 
 # The headroom categories of `classify_voxels`, by code (−1: not observed).
@@ -138,3 +143,61 @@ def alpha_of_prediction(var, pred, *, eps: float = DEFAULT_EPS) -> np.ndarray:
   var = np.asarray(var)
   v = np.take_along_axis(var, np.asarray(pred)[..., None], axis=-1)[..., 0]
   return -np.log(np.clip(v.astype(np.float64), 0.0, 0.25) + eps)
+
+
+# Per-pixel features whose power to tell right from wrong observations is measured
+# (`feature_histograms`): the learned rule's six moment features (docs/equations.md §3.9) and
+# every context feature (§2.5), each binned over a fixed range (values outside are clipped in).
+FEATURE_RANGES = {
+    "max_prob": (0.0, 1.0), "margin": (0.0, 1.0), "entropy": (0.0, 1.0),
+    "alpha_pred": (0.0, 2.8), "sqrt_sum_var": (0.0, 1.0), "rel_var_pred": (0.0, 1.0),
+    "depth": (0.0, 8.0), "incidence": (0.0, 1.0), "depth_edge": (0.0, 16.0),
+    "label_edge": (0.0, 16.0), "radius": (0.0, 1.0), "sharpness": (0.0, 0.5),
+    "luminance": (0.0, 1.0), "clipped": (0.0, 1.0)}
+FEATURE_BINS = 128
+
+
+@functools.partial(jax.jit, static_argnames=("names",))
+def _pixel_features(depth, probs, var, rgb, camera, names):
+  """`(H·W, 6 + F)`: the moment features of every pixel, then its context features `names`."""
+  k = probs.shape[-1]
+  flat_p = jnp.where(jnp.isfinite(probs), jnp.maximum(probs, 0.0), 1.0 / k).reshape(-1, k)
+  flat_v = jnp.where(jnp.isfinite(var), var, 0.0).reshape(-1, k)
+  moments = jax.vmap(lambda p, v: moment_features(p, v, DEFAULT_EPS))(flat_p, flat_v)
+  ctx = context_lib.pixel_context(depth, probs, camera, names, rgb)
+  return jnp.concatenate([moments, ctx.reshape(moments.shape[0], -1)], -1)
+
+
+def feature_histograms(depth, probs, var, rgb, camera, right, observed) -> dict:
+  """Histograms of every feature of `FEATURE_RANGES` over right and wrong pixel observations.
+
+  Args:
+    depth: `(T, H, W)` depth.
+    probs: `(T, H, W, K)` MC mean; var: `(T, H, W, K)` MC variance.
+    rgb: `(T, H, W, 3)` colour images.
+    camera: intrinsics.
+    right: `(T·H·W,)` bool, right observations (`pixel_observations` order: frame-major).
+    observed: `(T·H·W,)` bool, pixel observations.
+
+  Returns:
+    dict feature name → `(2, FEATURE_BINS)` int64 counts, right then wrong
+    (`metrics.auroc_from_histograms` takes them).
+  """
+  names = tuple(MOMENT_FEATURES) + tuple(context_lib.FEATURES)
+  fn = _pixel_features
+  t = np.shape(depth)[0]
+  values = np.concatenate([np.asarray(fn(np.asarray(depth[i], np.float32),
+                                         np.asarray(probs[i], np.float32),
+                                         np.asarray(var[i], np.float32), np.asarray(rgb[i]),
+                                         camera, tuple(context_lib.FEATURES)))
+                           for i in range(t)])
+  right = np.asarray(right, bool)
+  wrong = np.asarray(observed, bool) & ~right
+  out = {}
+  for f, name in enumerate(names):
+    lo, hi = FEATURE_RANGES[name]
+    edges = np.linspace(lo, hi, FEATURE_BINS + 1)
+    x = np.clip(values[:, f], lo, hi)
+    out[name] = np.stack([np.histogram(x[right], edges)[0],
+                          np.histogram(x[wrong], edges)[0]]).astype(np.int64)
+  return out

@@ -18,8 +18,11 @@ from .checkpoint import PRETRAINED_PATH
 from .checkpoint import load
 from .checkpoint import load_pretrained
 from .checkpoint import save
+from .learned_rule import GLFS_PATH
+from .learned_rule import GLFS_RECORD
 from .learned_rule import LEARNED_RULE_PATH
 from .learned_rule import LEARNED_RULE_RECORD
+from .learned_rule import load_glfs
 from .learned_rule import load_learned_rule
 from .net import DEFAULT_CLASS_NAMES
 from .net import SegNet
@@ -40,7 +43,8 @@ from .sampling import prepare_images
 from .sampling import stochastic_apply_fn
 
 __all__ = sorted([
-    "CheckpointError", "DEFAULT_CLASS_NAMES", "LEARNED_RULE_PATH", "LEARNED_RULE_RECORD",
+    "CheckpointError", "DEFAULT_CLASS_NAMES", "GLFS_PATH", "GLFS_RECORD", "LEARNED_RULE_PATH",
+    "LEARNED_RULE_RECORD", "load_glfs",
     "LoadedModel", "PRETRAINED_PATH", "SegNet",
     "SegNetConfig", "apply", "count_params", "deterministic_apply_fn", "deterministic_probs",
     "deterministic_source", "ensemble_source", "init", "load", "load_learned_rule",

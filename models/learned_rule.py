@@ -7,6 +7,7 @@ were fitted by `jaxfusion learn-rule` on the shipped network's outputs on calibr
 reproduces them is in it).
 
     rule = jaxfusion_models.load_learned_rule()        # a FusionRule, like rules.robust_dr()
+    peer = jaxfusion_models.load_glfs()                # GLFS, the published learned peer
 """
 
 import pathlib
@@ -19,6 +20,10 @@ from .checkpoint import WEIGHTS_DIR
 LEARNED_RULE_DIR = pathlib.Path(WEIGHTS_DIR) / "learned_rule"
 LEARNED_RULE_PATH = LEARNED_RULE_DIR / "params.json"
 LEARNED_RULE_RECORD = LEARNED_RULE_DIR / "record.json"
+# GLFS (docs/equations.md §3.10), fitted the same way on the same calibration layouts.
+GLFS_DIR = pathlib.Path(WEIGHTS_DIR) / "glfs"
+GLFS_PATH = GLFS_DIR / "params.json"
+GLFS_RECORD = GLFS_DIR / "record.json"
 
 
 def load_learned_rule(*, aggregate: str = "sum") -> rules.FusionRule:
@@ -31,3 +36,9 @@ def load_learned_rule(*, aggregate: str = "sum") -> rules.FusionRule:
     `rules.learned(params, aggregate=aggregate)`.
   """
   return rules.learned(learn.load_params(str(LEARNED_RULE_PATH)), aggregate=aggregate)
+
+
+def load_glfs(*, aggregate: str = "sum") -> rules.FusionRule:
+  """GLFS with the shipped table (`GLFS_PATH`): `rules.glfs(**params, aggregate=aggregate)`."""
+  family, params = learn.load_rule(str(GLFS_PATH))
+  return learn.rule_of(family, params, aggregate=aggregate)

@@ -50,27 +50,37 @@ def learned_features(p, s, eps):
   return np.array([top, top - second, entropy, alpha_pred, sqrt_sum_var, rel])
 
 
+# docs/equations.md §3.9: the fixed scales of the context features in the learned weight.
+CONTEXT_SCALE = {"depth": 0.25, "incidence": 1.0, "depth_edge": 1 / 16, "label_edge": 1 / 16,
+                 "radius": 1.0, "sharpness": 4.0, "luminance": 1.0, "clipped": 1.0}
+
+
 class ReferenceMap:
   """One map under one rule, by docs/equations.md §3. `rule` is one of the six paper names, or
   "learned" (§3.9, its parameters in `learned`). `beta`, `eps` and `alpha0` may be scalars or
   per-class sequences of length K (§3.7)."""
 
   def __init__(self, rule, num_classes, voxel_size, *, beta=0.3, eps=1e-12,
-               alpha0=-math.log(1e-3), aggregate="sum", learned=None):
+               alpha0=-math.log(1e-3), aggregate="sum", learned=None, context=(),
+               glfs=None):
     self.rule, self.K, self.voxel_size = rule, num_classes, voxel_size
     as_param = lambda x: float(x) if np.ndim(x) == 0 else np.asarray(x, np.float64)
     self.beta, self.eps, self.alpha0 = as_param(beta), as_param(eps), as_param(alpha0)
     self.aggregate = aggregate
     self.learned = {k: np.asarray(v, np.float64) for k, v in (learned or {}).items()}
+    self.context = tuple(context)          # the learned rule's context names (§2.5)
+    self.glfs = glfs                       # (table, depth_edges, angle_edges) for "glfs"
     self.voxels = {}
 
   def _new_voxel(self):
     K = self.K
     return {"score": np.zeros(K), "logp": np.full(K, -math.log(K)),
-            "alpha_bar": np.full(K, self.alpha0), "hits": 0}
+            "alpha_bar": np.full(K, self.alpha0), "hits": 0, "frames": 0}
 
-  def fuse(self, depth, T_world_cam, probs, var, fx, fy, cx, cy):
+  def fuse(self, depth, T_world_cam, probs, var, fx, fy, cx, cy, ctx=None):
+    """`ctx`: `(H, W, F)` per-pixel context features in the rule's order (§2.5), or None."""
     groups = defaultdict(list)
+    contexts = defaultdict(list)
     for (v, u), p_world in pixel_points(depth, T_world_cam, fx, fy, cx, cy):
       p = np.asarray(probs[v, u], np.float64)
       s = np.zeros(self.K) if var is None else np.asarray(var[v, u], np.float64)
@@ -78,16 +88,18 @@ class ReferenceMap:
         continue
       key = tuple(int(k) for k in np.floor(p_world / self.voxel_size))
       groups[key].append((p, s))
+      contexts[key].append(None if ctx is None else np.asarray(ctx[v, u], np.float64))
     for key, pixels in groups.items():
       voxel = self.voxels.setdefault(key, self._new_voxel())
-      self._update(voxel, pixels)
+      self._update(voxel, pixels, contexts[key])
       voxel["hits"] += len(pixels)
+      voxel["frames"] += 1
 
   def _reduce(self, values):
     total = np.sum(values, axis=0)
     return total / len(values) if self.aggregate == "mean" else total
 
-  def _update(self, voxel, pixels):
+  def _update(self, voxel, pixels, contexts):
     K, rule = self.K, self.rule
     if rule == "sum_probs":
       voxel["score"] += self._reduce([p for p, _ in pixels])
@@ -96,7 +108,17 @@ class ReferenceMap:
       voxel["score"] += self._reduce([np.eye(K)[int(np.argmax(p))] for p, _ in pixels])
       return
     if rule == "learned":
-      self._update_learned(voxel, pixels)
+      self._update_learned(voxel, pixels, contexts)
+      return
+    if rule == "glfs":   # §3.10
+      table, depth_edges, angle_edges = self.glfs
+      total = []
+      for (p, _), c in zip(pixels, contexts):
+        d = int(np.sum(np.asarray(depth_edges) <= c[0]))
+        a = int(np.sum(np.asarray(angle_edges) <= c[1]))
+        total.append(table[int(np.argmax(p)), d, a] * np.log(np.maximum(p, TINY)))
+      logp = voxel["logp"] + self._reduce(total)
+      voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
       return
     if rule in ("robust_r", "robust_dr") and np.ndim(self.beta) == 0:
       pixels = [((1 - self.beta) * p + self.beta / K, s) for p, s in pixels]
@@ -114,14 +136,22 @@ class ReferenceMap:
       voxel["alpha_bar"] = new
     voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
 
-  def _update_learned(self, voxel, pixels):
+  def _update_learned(self, voxel, pixels, contexts):
     """docs/equations.md §3.9, one voxel and one frame."""
     K, hp = self.K, self.learned
-    theta, bias, mix, gate = hp["theta"], float(hp["bias"]), float(hp["mix"]), hp["gate"]
+    theta, bias, mix, gate = hp["theta"], hp["bias"], float(hp["mix"]), hp["gate"]
     beta = np.broadcast_to(self.beta, (K,))
     plain, weighted, alphas = [], [], []
-    for p, s in pixels:
-      w = sigmoid(float(theta @ learned_features(p, s, self.eps)) + bias)
+    for (p, s), c in zip(pixels, contexts):
+      pred = int(np.argmax(p))
+      th = theta[pred] if theta.ndim == 2 else theta
+      b = float(bias[pred]) if bias.ndim == 1 else float(bias)
+      z = float(th @ learned_features(p, s, self.eps)) + b
+      if self.context:
+        scale = np.array([CONTEXT_SCALE[n] for n in self.context])
+        ct = hp["context_theta"]
+        z += float((ct[pred] if ct.ndim == 2 else ct) @ (scale * c))
+      w = sigmoid(z)
       log_pt = np.log(np.maximum(per_class_regularize(p, beta) if np.ndim(self.beta)
                                  else (1 - self.beta) * p + self.beta / K, TINY))
       alpha = -np.log(np.clip(s, 0.0, 0.25) + self.eps)
@@ -137,7 +167,14 @@ class ReferenceMap:
     soft = np.exp(obs - obs.max())
     soft /= soft.sum()
     spread = -sum(q * math.log(max(q, TINY)) for q in prior) / math.log(K)
-    g = sigmoid(gate[0] + gate[1] * float(prior @ soft) + gate[2] * spread)
+    logit = gate[0] + gate[1] * float(prior @ soft) + gate[2] * spread
+    if len(gate) == 5:
+      mid = 0.5 * (soft + prior)
+      kl = lambda a: sum(x * (math.log(max(x, TINY)) - math.log(max(m, TINY)))
+                         for x, m in zip(a, mid) if x > 0)
+      js = min(max(0.5 * (kl(soft) + kl(prior)) / math.log(2), 0.0), 1.0)
+      logit += gate[3] * js + gate[4] * math.log1p(voxel["frames"]) / math.log(33.0)
+    g = sigmoid(logit)
     logp = keep * voxel["logp"] + g * obs
     voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
     voxel["alpha_bar"] = new

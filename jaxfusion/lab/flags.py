@@ -154,6 +154,49 @@ def learned_rule(args: argparse.Namespace) -> tuple:
   return learn.load_params(source), source
 
 
+def add_glfs_rule(parser: argparse.ArgumentParser) -> None:
+  """`--glfs PARAMS_JSON` | `--no-glfs`: GLFS (docs/equations.md §3.10) as a row."""
+  group = parser.add_mutually_exclusive_group()
+  group.add_argument("--glfs", default=None, metavar="PARAMS_JSON",
+                     help="params.json of `jaxfusion learn-rule --family glfs`, fused as a row "
+                          "(default: the shipped table, jaxfusion_models.GLFS_PATH)")
+  group.add_argument("--no-glfs", action="store_true", help="no GLFS row")
+
+
+def glfs_rule(args: argparse.Namespace) -> tuple:
+  """`(params, source)` of `add_glfs_rule`'s flags, or `(None, None)` with --no-glfs."""
+  if args.no_glfs:
+    return None, None
+  from jaxfusion import learn   # pylint: disable=import-outside-toplevel
+  if args.glfs is None:
+    import jaxfusion_models  # pylint: disable=import-outside-toplevel
+    source = str(jaxfusion_models.GLFS_PATH)
+  else:
+    source = args.glfs
+  family, params = learn.load_rule(source)
+  if family != "glfs":
+    raise ValueError(f"--glfs {source}: a {family!r} parameter file, not a GLFS table")
+  return params, source
+
+
+def learned_variants(args: argparse.Namespace) -> tuple:
+  """`((tag, params), …)` of repeated `--variant TAG=PARAMS_JSON` flags (learned rules)."""
+  from jaxfusion import learn   # pylint: disable=import-outside-toplevel
+  out = []
+  for spec in getattr(args, "variant", []) or []:
+    tag, sep, path = spec.partition("=")
+    if not sep or not tag or not path:
+      raise ValueError(f"--variant takes TAG=PARAMS_JSON; got {spec!r}")
+    family, params = learn.load_rule(path)
+    if family != "learned":
+      raise ValueError(f"--variant {spec}: a {family!r} parameter file, not a learned rule")
+    out.append((tag, params))
+  tags = [t for t, _ in out]
+  if len(set(tags)) != len(tags):
+    raise ValueError(f"--variant tags must differ; got {tags}")
+  return tuple(out)
+
+
 def add_study_run(parser: argparse.ArgumentParser, *, seed_aliases: Sequence[str] = (),
                   seeds_help: str = "") -> None:
   """The flags of a study's grid of runs (`jaxfusion study`, `jaxfusion mesh-study`): cache,

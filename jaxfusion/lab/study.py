@@ -71,15 +71,21 @@ from jaxfusion.datasets.classes import CLASS_NAMES
 from jaxfusion.observations import HEADROOM
 from jaxfusion.observations import alpha_of_prediction
 from jaxfusion.observations import classify_voxels
+from jaxfusion.observations import feature_histograms
 from jaxfusion.observations import pixel_observations
 
 ORACLE = "oracle"
 # The learned rule (`rules.learned` with `StudyConfig.learned` parameters), a seventh row.
 LEARNED = "learned"
+# GLFS (`rules.glfs` with `StudyConfig.glfs` parameters), the published learned peer.
+GLFS = "glfs"
+# Other fitted learned rules (an ablation) are named "learned:<tag>".
+VARIANT_PREFIX = "learned:"
 # Paired comparisons (A, B) reported as A − B, in this order (those whose rules are run).
 COMPARISONS = (("robust_dr", "bayes"), ("robust_dr", "sum_probs"), ("robust_r", "bayes"),
                ("robust_d", "bayes"), (LEARNED, "bayes"), (LEARNED, "robust_dr"),
-               (LEARNED, "robust_r"), (LEARNED, "robust_d"), (ORACLE, "bayes"))
+               (LEARNED, "robust_r"), (LEARNED, "robust_d"), (GLFS, "bayes"), (LEARNED, GLFS),
+               (ORACLE, "bayes"))
 # α bins: 0.1 nat from 0 to 28 (α ≤ −log 1e-12 ≈ 27.6).
 ALPHA_EDGES = np.linspace(0.0, 28.0, 281)
 # The demo's layout seed; the study's default seeds avoid it.
@@ -111,6 +117,11 @@ class StudyConfig:
       output): the learned rule is fused on the MC mean and variance as a seventh row; None:
       the six paper rules only.
     learned_source: where `learned` came from (a path), for the report.
+    glfs: parameters of `rules.glfs` (a dict: `table`, edges), fused on the MC mean with the
+      frame's depth and incidence as a row; None: no GLFS row.
+    glfs_source: where `glfs` came from.
+    variants: `((tag, params), …)`: more learned rules (e.g. an ablation by feature group),
+      each a row "learned:<tag>" compared with Bayes and with the learned row.
   """
   run: config_lib.RunConfig = dataclasses.field(default_factory=_study_run)
   num_resamples: int = stats.DEFAULT_RESAMPLES
@@ -118,11 +129,38 @@ class StudyConfig:
   bootstrap_seed: int = 0
   learned: Optional[dict] = None
   learned_source: Optional[str] = None
+  glfs: Optional[dict] = None
+  glfs_source: Optional[str] = None
+  variants: tuple = ()
+
+  @property
+  def fitted(self) -> dict:
+    """Method name → FusionRule of every fitted row (learned, GLFS, variants), in order."""
+    out = {}
+    aggregate = self.run.aggregate
+    if self.learned is not None:
+      out[LEARNED] = jf.rules.learned(self.learned, aggregate=aggregate)
+    if self.glfs is not None:
+      out[GLFS] = jf.rules.glfs(**self.glfs, aggregate=aggregate)
+    for tag, params in self.variants:
+      out[VARIANT_PREFIX + tag] = jf.rules.learned(params, aggregate=aggregate)
+    return out
 
   @property
   def methods(self) -> list:
-    """The rules' names in table order, then `LEARNED` (when given) and `ORACLE`."""
-    return list(self.run.rules) + ([LEARNED] if self.learned is not None else []) + [ORACLE]
+    """The rules' names in table order, then the fitted rows (when given) and `ORACLE`."""
+    fitted = [LEARNED] if self.learned is not None else []
+    fitted += [GLFS] if self.glfs is not None else []
+    fitted += [VARIANT_PREFIX + tag for tag, _ in self.variants]
+    return list(self.run.rules) + fitted + [ORACLE]
+
+  @property
+  def comparisons(self) -> list:
+    """`COMPARISONS`, then each variant against Bayes and the learned row against it."""
+    extra = []
+    for tag, _ in self.variants:
+      extra += [(VARIANT_PREFIX + tag, "bayes"), (LEARNED, VARIANT_PREFIX + tag)]
+    return list(COMPARISONS[:-1]) + extra + [COMPARISONS[-1]]
 
   @classmethod
   def quick(cls, **overrides) -> "StudyConfig":
@@ -134,12 +172,15 @@ class StudyConfig:
 
   @classmethod
   def of(cls, quick: bool = False, *, num_resamples=None, confidence=None, learned=None,
-         learned_source=None, **run) -> "StudyConfig":
+         learned_source=None, glfs=None, glfs_source=None, variants=None,
+         **run) -> "StudyConfig":
     """The full (or quick) study with some run fields and statistics replaced (None: keep)."""
     run = {k: v for k, v in run.items() if v is not None}
     stats_overrides = {k: v for k, v in (("num_resamples", num_resamples),
                                          ("confidence", confidence), ("learned", learned),
-                                         ("learned_source", learned_source)) if v is not None}
+                                         ("learned_source", learned_source), ("glfs", glfs),
+                                         ("glfs_source", glfs_source),
+                                         ("variants", variants)) if v is not None}
     if quick:
       return cls.quick(run=run, **stats_overrides)
     return cls(run=_study_run(**run), **stats_overrides)
@@ -157,11 +198,11 @@ class StudyConfig:
 
 
 # --- per-sequence analysis ---------------------------------------------------------------------
-def _fuse(depth, T_world_cam, camera, probs, var, rule, config):
+def _fuse(depth, T_world_cam, camera, probs, var, rule, config, rgb=None):
   state = jf.init_map(capacity=config.run.capacity, num_classes=probs.shape[-1],
                       voxel_size=config.run.voxel_size, rule=rule)
   frames = jf.Frame(np.asarray(depth, np.float32), np.asarray(T_world_cam, np.float32), probs,
-                    None if var is None else var)
+                    None if var is None else var, rgb if rule.context else None)
   return jf.read_map(jf.fuse_sequence(state, frames, camera, rule))
 
 
@@ -224,12 +265,14 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     labels_at[name] = _labels_at(voxels, gt_coords)
     if name == "bayes":
       result_bayes = ev
-  if config.learned is not None:
-    rule = jf.rules.learned(config.learned, aggregate=config.run.aggregate)
+  for name, rule in config.fitted.items():
     voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera, predictions["mean"],
-                   predictions["var"], rule, config)
-    confusion[LEARNED] = metrics.evaluate_map(voxels, gt, num_classes)["confusion"]
-    labels_at[LEARNED] = _labels_at(voxels, gt_coords)
+                   predictions["var"] if rule.requires_var else None, rule, config,
+                   rgb=sequence.rgb)
+    confusion[name] = metrics.evaluate_map(voxels, gt, num_classes)["confusion"]
+    labels_at[name] = _labels_at(voxels, gt_coords)
+  features = feature_histograms(sequence.depth, predictions["mean"], predictions["var"],
+                                sequence.rgb, sequence.camera, right, observed)
   # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
   bayes = config.run.make_rule("bayes")
   masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0).astype(np.float32)
@@ -244,7 +287,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     hit = labels == gt_labels
     correct[name] = np.array([(hit & (category == c)).sum() for c in range(3)], np.int64)
   return {"confusion": confusion, "correct": correct, "headroom": headroom,
-          "alpha_hist": alpha_hist,
+          "alpha_hist": alpha_hist, "feature_hist": features,
           "pixels": {"right": int(right.sum()), "wrong": int((observed & ~right).sum())},
           "matched": result_bayes["matched"], "map_only": result_bayes["map_only"],
           "gt_only": result_bayes["gt_only"]}
@@ -304,7 +347,7 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
                                     "accuracy": _iv(stats.bootstrap(cms[m], stats.accuracy,
                                                                     **kw))}
       res["class_iou"][display(m)] = [float(v) for v in metrics.iou_from_confusion(cms[m].sum(0))]
-    for a, b in COMPARISONS:
+    for a, b in config.comparisons:
       if a in cms and b in cms:
         res["differences"][f"{display(a)} − {display(b)}"] = {
             "miou": _iv(stats.paired_difference(cms[a], cms[b], stats.miou, **kw)),
@@ -333,13 +376,21 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
                     "median_wrong": histogram_median(hist[:, 1].sum(0)),
                     "auroc": _iv(stats.bootstrap(hist, metrics.auroc_from_histograms, **kw)),
                     "right_share": _iv(stats.bootstrap(pix, stats.ratio, **kw))}
+    if all("feature_hist" in r for r in seq):
+      res["feature_auroc"] = {
+          name: _iv(stats.bootstrap(np.stack([r["feature_hist"][name] for r in seq]),
+                                    metrics.auroc_from_histograms, **kw))
+          for name in seq[0]["feature_hist"]}
     out[f"{float(shift):g}"] = res
   return out
 
 
 def display(method: str) -> str:
-  """Table name of a rule name, `LEARNED` or `ORACLE`."""
-  return {ORACLE: "Oracle", LEARNED: "Learned"}.get(method) or jf.rules.PAPER_RULES[method][0]
+  """Table name of a rule name, `LEARNED`, `GLFS`, a variant or `ORACLE`."""
+  if method.startswith(VARIANT_PREFIX):
+    return f"Learned ({method[len(VARIANT_PREFIX):]})"
+  return ({ORACLE: "Oracle", LEARNED: "Learned", GLFS: "GLFS"}.get(method)
+          or jf.rules.PAPER_RULES[method][0])
 
 
 # --- tables and figures ------------------------------------------------------------------------
@@ -421,6 +472,19 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
     lines.append(f"| {s} | {_cell(a['right_share'])} | {a['median_right']:.2f} | "
                  f"{a['median_wrong']:.2f} | {auroc_cell} |")
   parts.append("\n".join(lines))
+  if "feature_auroc" in first:
+    names = list(first["feature_auroc"])
+    lines = [f"## Per-pixel features: AUROC of right vs wrong observations ({conf} bootstrap "
+             "intervals; below 0.5: lower on right observations)", "",
+             "| Feature | " + " | ".join(f"shift {s}" for s in shifts) + " |", rule]
+    for name in names:
+      cells = []
+      for s in shifts:
+        iv = summary[s]["feature_auroc"][name]
+        cells.append("–" if iv["estimate"] is None or not np.isfinite(iv["estimate"]) else
+                     f"{iv['estimate']:.3f} [{iv['low']:.3f}, {iv['high']:.3f}]")
+      lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    parts.append("\n".join(lines))
   return "\n\n".join(parts) + "\n"
 
 
@@ -447,6 +511,8 @@ def _csv(summary: dict) -> str:
     for m, v in r.get("oracle_share", {}).items():
       row(s, "oracle_share", m, "miou_gain_share", v)
     row(s, "front_end", "alpha", "auroc", r["alpha"]["auroc"])
+    for name, v in r.get("feature_auroc", {}).items():
+      row(s, "feature_auroc", name, "auroc", v)
     row(s, "front_end", "pixels", "right_share", r["alpha"]["right_share"])
   return buf.getvalue()
 
@@ -464,7 +530,10 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
           f"layout seeds {list(run.layout_seeds)}; "
           f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
           + (f"learned rule `{config.learned_source or 'given parameters'}`; "
-             if config.learned is not None else "") +
+             if config.learned is not None else "")
+          + (f"GLFS `{config.glfs_source or 'given parameters'}`; "
+             if config.glfs is not None else "")
+          + "".join(f"variant {tag}; " for tag, _ in config.variants) +
           f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
   table = format_tables(summary, config, note)
   paths = {n: os.path.join(out_dir, n) for n in (
@@ -576,6 +645,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   p.add_argument("--out", default="outputs/study", help="output folder")
   flags.add_study_run(p, seed_aliases=("--seeds",),
                       seeds_help=f" (default 1 2 3; the demo uses {DEMO_SEED})")
+  flags.add_glfs_rule(p)
+  p.add_argument("--variant", action="append", default=[], metavar="TAG=PARAMS_JSON",
+                 help="another learned rule (a learn-rule params.json) as a row "
+                      "'Learned (TAG)', compared with Bayes and the learned row; repeatable")
   p.set_defaults(func=main)
   return p
 
@@ -583,12 +656,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion study` from parsed arguments and prints the tables."""
   learned, source = flags.learned_rule(args)
+  glfs, glfs_source = flags.glfs_rule(args)
   config = StudyConfig.of(
       args.quick, num_resamples=args.resamples, layout_seeds=flags.as_tuple(args.layout_seeds),
       shifts=flags.as_tuple(args.shifts), envs=flags.as_tuple(args.envs),
       trajectories=flags.as_tuple(args.trajectories), num_frames=args.frames,
       height=args.height, width=args.width, num_samples=args.num_samples, beta=args.beta,
-      aggregate=args.aggregate, mc_seed=args.mc_seed, learned=learned, learned_source=source)
+      aggregate=args.aggregate, mc_seed=args.mc_seed, learned=learned, learned_source=source,
+      glfs=glfs, glfs_source=glfs_source, variants=flags.learned_variants(args))
   out = run_study(config.validate(), args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
   print(out["table"])
   t = out["timing"]
