@@ -1,7 +1,8 @@
 """jaxfusion: robust Bayesian semantic voxel mapping in JAX.
 
 The pipeline: camera geometry → spatial hash → map state → fusion rules → `fuse_frame` →
-readout → metrics; beside the semantics, a geometry layer (`tsdf`, a TSDF fused in the same
+readout → metrics, with per-pixel context features of a frame (`context`) for the rules that
+read them; beside the semantics, a geometry layer (`tsdf`, a TSDF fused in the same
 call) and its meshes (`mesh`, marching cubes). Batches, sweeps and tuning build on it
 (`batch`, `tune`); the synthetic world and real-data readers live in `jaxfusion.datasets`, the
 simulated front ends (independent or view-dependent errors) in `jaxfusion.simulation`, the
@@ -13,6 +14,7 @@ This package is the library. The application (commands, studies, figures, the vi
 """
 
 from jaxfusion import batch
+from jaxfusion import context
 from jaxfusion import datasets
 from jaxfusion import io
 from jaxfusion import learn
@@ -63,7 +65,8 @@ __all__ = sorted([
     "Camera", "ClassMap", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "Mapper",
     "Mesh", "QueryResult", "TSDFConfig", "TSDFState", "extract_mesh", "init_tsdf", "label_mesh",
     "mesh",
-    "mesh_by_class", "tsdf", "batch", "calibration_loss", "capacity_for", "datasets", "fuse_batch",
+    "mesh_by_class", "tsdf", "batch", "context", "calibration_loss", "capacity_for", "datasets",
+    "fuse_batch",
     "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "learn",
     "make_mesh", "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules",
     "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",

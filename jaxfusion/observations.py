@@ -174,25 +174,28 @@ def feature_histograms(depth, probs, var, rgb, camera, right, observed) -> dict:
   Args:
     depth: `(T, H, W)` depth.
     probs: `(T, H, W, K)` MC mean; var: `(T, H, W, K)` MC variance.
-    rgb: `(T, H, W, 3)` colour images.
+    rgb: `(T, H, W, 3)` colour images, or None (then the image features are left out).
     camera: intrinsics.
-    right: `(T·H·W,)` bool, right observations (`pixel_observations` order: frame-major).
-    observed: `(T·H·W,)` bool, pixel observations.
+    right: `(T, H·W)` (or flat) bool, right observations, frame-major.
+    observed: the same shape, bool: pixel observations.
 
   Returns:
     dict feature name → `(2, FEATURE_BINS)` int64 counts, right then wrong
     (`metrics.auroc_from_histograms` takes them).
   """
-  names = tuple(MOMENT_FEATURES) + tuple(context_lib.FEATURES)
+  ctx_names = tuple(n for n in context_lib.FEATURES
+                    if rgb is not None or n not in context_lib.IMAGE_FEATURES)
+  names = tuple(MOMENT_FEATURES) + ctx_names
   fn = _pixel_features
   t = np.shape(depth)[0]
   values = np.concatenate([np.asarray(fn(np.asarray(depth[i], np.float32),
                                          np.asarray(probs[i], np.float32),
-                                         np.asarray(var[i], np.float32), np.asarray(rgb[i]),
-                                         camera, tuple(context_lib.FEATURES)))
+                                         np.asarray(var[i], np.float32),
+                                         None if rgb is None else np.asarray(rgb[i]),
+                                         camera, ctx_names))
                            for i in range(t)])
-  right = np.asarray(right, bool)
-  wrong = np.asarray(observed, bool) & ~right
+  right = np.asarray(right, bool).reshape(-1)
+  wrong = np.asarray(observed, bool).reshape(-1) & ~right
   out = {}
   for f, name in enumerate(names):
     lo, hi = FEATURE_RANGES[name]

@@ -268,11 +268,12 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
   for name, rule in config.fitted.items():
     voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera, predictions["mean"],
                    predictions["var"] if rule.requires_var else None, rule, config,
-                   rgb=sequence.rgb)
+                   rgb=getattr(sequence, "rgb", None))
     confusion[name] = metrics.evaluate_map(voxels, gt, num_classes)["confusion"]
     labels_at[name] = _labels_at(voxels, gt_coords)
   features = feature_histograms(sequence.depth, predictions["mean"], predictions["var"],
-                                sequence.rgb, sequence.camera, right, observed)
+                                getattr(sequence, "rgb", None), sequence.camera, right,
+                                observed)
   # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
   bayes = config.run.make_rule("bayes")
   masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0).astype(np.float32)

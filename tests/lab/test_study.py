@@ -53,6 +53,7 @@ def test_the_analyses_of_pixel_observations_keep_their_names_here():
 def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   rng = np.random.default_rng(2)
   seq, gt, keys, valid = plane_scene(rng)
+  seq.rgb = rng.integers(0, 256, seq.depth.shape + (3,), dtype=np.uint8)
   index = {tuple(c): i for i, c in enumerate(gt["coords"])}
   g = np.array([[index.get(tuple(k), 0) for k in frame] for frame in keys]).reshape(
       seq.depth.shape)                                      # GT voxel of each pixel
@@ -100,6 +101,32 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   res = study.analyze_sequence(seq, preds, gt, with_learned)
   assert np.abs(res["confusion"][study.LEARNED] - res["confusion"]["robust_dr"]).sum() <= 2
   assert np.all(res["correct"][study.LEARNED] <= oracle)
+
+  # GLFS with the all-ones table is Bayes on the MC mean; a variant is one more learned row
+  # (here D+R again, reading context at zero weight); both stay under the oracle.
+  glfs = {"table": np.ones((K, 5, 4)).tolist()}
+  variant = {**learned, "context": ["depth", "luminance"], "context_theta": [0.0, 0.0]}
+  more = study.StudyConfig.of(height=H, width=W, capacity=CAPACITY, voxel_size=0.5,
+                              learned=learned, glfs=glfs, variants=(("ctx", variant),))
+  assert more.methods == list(config.run.rules) + [study.LEARNED, study.GLFS, "learned:ctx",
+                                                   study.ORACLE]
+  assert ("learned:ctx", "bayes") in more.comparisons and (study.LEARNED, study.GLFS) in \
+      more.comparisons and more.comparisons[-1] == (study.ORACLE, "bayes")
+  res = study.analyze_sequence(seq, preds, gt, more)
+  bayes_mean = study._fuse(seq.depth, seq.T_world_cam, seq.camera, preds["mean"], None,
+                           jf.rules.bayes(), more)
+  np.testing.assert_array_equal(
+      res["confusion"][study.GLFS],
+      jf.metrics.evaluate_map(bayes_mean, gt, K)["confusion"])
+  assert np.abs(res["confusion"]["learned:ctx"] - res["confusion"][study.LEARNED]).sum() <= 2
+  for name in (study.GLFS, "learned:ctx"):
+    assert np.all(res["correct"][name] <= oracle)
+  assert study.display("learned:ctx") == "Learned (ctx)" and study.display("glfs") == "GLFS"
+  # Per-feature histograms hold every observation once, right then wrong.
+  assert set(res["feature_hist"]) == set(observations.FEATURE_RANGES)
+  for counts in res["feature_hist"].values():
+    assert counts.shape == (2, observations.FEATURE_BINS)
+    assert counts[0].sum() == res["pixels"]["right"] and counts[1].sum() == res["pixels"]["wrong"]
 
 
 def test_histogram_auroc_and_median_against_direct_computation():
@@ -185,6 +212,11 @@ def test_tiny_study_end_to_end(tmp_path):
   assert "## Per-class IoU (%) at shift 1" in out["table"]
   assert "the Bayesian special case" in (tmp_path / "learned" / "study.md").read_text()
   assert front.calls == 2
+  # Every feature's AUROC per shift is in the summary and the tables.
+  aurocs = shift1["feature_auroc"]
+  assert set(aurocs) == set(observations.FEATURE_RANGES)
+  assert all(0.0 <= v["estimate"] <= 1.0 for v in aurocs.values() if v["estimate"] is not None)
+  assert "## Per-pixel features: AUROC" in out["table"] and "| incidence |" in out["table"]
 
 
 def test_cli_study_help_and_bad_input(capsys):

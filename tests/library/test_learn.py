@@ -115,3 +115,43 @@ def test_weight_grid_matches_the_rule_and_is_in_range():
   var = jnp.asarray([np.exp(-1.0) - 1e-12, 0.0, 0.0, 0.0])
   w = jf_learned.pixel_weight(jf_learned.features(probs, var, 1e-12), rule.hparams)
   assert float(w) == pytest.approx(float(grid[0, 0]), rel=1e-5)
+
+
+def test_start_params_shapes_for_context_per_class_weights_and_gate():
+  start = learn.constrain(learn.start_params(4, context=("depth", "radius"),
+                                             per_class_weights=True, gate_size=5))
+  assert np.shape(start["theta"]) == (4, 6) and np.shape(start["bias"]) == (4,)
+  assert np.shape(start["context_theta"]) == (4, 2) and np.shape(start["gate"]) == (5,)
+  np.testing.assert_array_equal(np.asarray(start["gate"])[3:], 0.0)
+  with pytest.raises(ValueError, match="gate_size"):
+    learn.start_params(4, gate_size=4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", ["learned", "glfs"])
+def test_fit_other_families_and_round_trip_their_files(batches, family, tmp_path):
+  train, validation = batches
+  kw = dict(context=("depth", "incidence", "label_edge"), per_class_weights=True, gate_size=5)
+  res = learn.fit(train, validation, steps=2, learning_rate=0.1, eval_every=1, patience=5,
+                  voxel_size=0.25, family=family, **(kw if family == "learned" else {}))
+  assert res.steps_run == 2 and res.train_losses[-1] < res.train_losses[0]
+  assert res.rule.name == family
+  if family == "learned":
+    assert res.params["context"] == list(kw["context"])
+    assert np.shape(res.params["context_theta"]) == (4, 3)
+    assert res.rule.context == kw["context"]
+  else:
+    table = np.asarray(res.params["table"])
+    assert table.shape == (4, 5, 4) and np.all(table > 0)
+  path = tmp_path / "params.json"
+  path.write_text(json.dumps({"rule": family, "params": res.params}))
+  loaded_family, params = learn.load_rule(str(path))
+  assert loaded_family == family
+  rule = learn.rule_of(family, params)
+  for a, b in zip(jax.tree.leaves(rule.hparams), jax.tree.leaves(res.rule.hparams)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)
+  path.write_text(json.dumps({"rule": "nope", "params": {}}))
+  with pytest.raises(ValueError, match="unknown 'rule'"):
+    learn.load_rule(str(path))
+  with pytest.raises(ValueError, match="family must be one of"):
+    learn.fit(train, validation, family="mlp")
