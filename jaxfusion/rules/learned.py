@@ -21,8 +21,16 @@ Special cases: θ = 0, b = γ₀ = 30, γ₁ = γ₂ = 0 make every weight and g
 (§3.6); δ = 1, β = 0 is D (§3.5) — the same maps up to float32 rounding of the same terms.
 `learned()` with no arguments is D+R at the paper's β; `special_case(name)` gives the others.
 
-All of θ, b, δ, γ, β (and ε, α₀) are traced leaves: `jit`, `vmap` over a stack of parameter
-sets and `grad` work without recompiling when values change. 13 + K parameters (β per class).
+The second version (docs/equations.md §3.9, "With context"): `learned(params, context=names)`
+adds `θᶜ · ψ_j` to the weight's logit, ψ_j the pixel's context features (`jaxfusion.context`,
+§2.5) times fixed scales; θ, b and θᶜ may be one row per predicted class (`(K, 6)`, `(K,)`,
+`(K, F)`); γ `(5,)` adds the Jensen–Shannon divergence between the frame's observation and the
+voxel's posterior and the voxel's frame count to the gate. The special cases hold as before.
+
+All of θ, b, θᶜ, δ, γ, β (and ε, α₀) are traced leaves: `jit`, `vmap` over a stack of parameter
+sets and `grad` work without recompiling when values change; the context names are static.
+13 + K parameters in the first version (β per class), 118 at K = 7 with every feature, per-class
+weights and γ `(5,)`.
 """
 
 import math
