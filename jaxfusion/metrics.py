@@ -157,6 +157,45 @@ def auroc_from_histograms(counts) -> np.ndarray:
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
 
 
+# Equal-width bins of the top posterior probability for `calibration_bins` / `ece_from_bins`.
+CALIBRATION_BINS = 15
+
+
+def calibration_bins(posterior, labels, *, num_bins: int = CALIBRATION_BINS) -> np.ndarray:
+  """Reliability counts of a map's posteriors against GT labels, for the ECE.
+
+  Args:
+    posterior: `(V, K)` normalised class distributions (of the GT voxels the map holds).
+    labels: `(V,)` GT labels.
+    num_bins: equal-width bins of the top probability over [0, 1].
+
+  Returns:
+    `(num_bins, 3) float64`: per bin the number of voxels, how many are labelled right (argmax
+    = GT) and the sum of their top probabilities. Counts of several maps add up.
+  """
+  posterior = np.asarray(posterior, np.float64).reshape(-1, np.shape(posterior)[-1])
+  labels = np.asarray(labels).reshape(-1)
+  conf = posterior.max(-1) if len(posterior) else np.zeros(0)
+  right = (posterior.argmax(-1) == labels) if len(posterior) else np.zeros(0, bool)
+  index = np.minimum((conf * num_bins).astype(np.int64), num_bins - 1)
+  out = np.zeros((num_bins, 3))
+  np.add.at(out[:, 0], index, 1.0)
+  np.add.at(out[:, 1], index, right.astype(np.float64))
+  np.add.at(out[:, 2], index, conf)
+  return out
+
+
+def ece_from_bins(bins) -> np.ndarray:
+  """Expected calibration error `Σ_b (n_b / N)·|acc_b − conf_b|` from `calibration_bins`
+  counts `(..., B, 3)`; NaN without voxels."""
+  bins = np.asarray(bins, np.float64)
+  n, right, conf = bins[..., 0], bins[..., 1], bins[..., 2]
+  total = n.sum(-1)
+  gap = np.abs(right - conf).sum(-1)          # Σ_b |n_b·acc_b − n_b·conf_b|
+  with np.errstate(invalid="ignore", divide="ignore"):
+    return np.where(total > 0, gap / np.where(total > 0, total, 1.0), np.nan)
+
+
 def accuracy(cm: np.ndarray) -> float:
   """Fraction of scored voxels whose predicted label equals the GT label."""
   cm = np.asarray(cm)

@@ -206,6 +206,13 @@ def _fuse(depth, T_world_cam, camera, probs, var, rule, config, rgb=None):
   return jf.read_map(jf.fuse_sequence(state, frames, camera, rule))
 
 
+def _calibration(voxels, gt_coords, gt_labels) -> np.ndarray:
+  """`metrics.calibration_bins` of the map's posteriors at the GT voxels it holds."""
+  map_index, gt_index = metrics.match_voxels(voxels["coords"], gt_coords)
+  return metrics.calibration_bins(np.asarray(voxels["posterior"])[map_index],
+                                  gt_labels[gt_index])
+
+
 def _labels_at(voxels, gt_coords) -> np.ndarray:
   """`(G,)` map label of each GT voxel, −1 where the map does not hold it."""
   out = np.full(len(gt_coords), -1, np.int64)
@@ -252,7 +259,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
   alpha_hist = np.stack([np.histogram(alpha[right], ALPHA_EDGES)[0],
                          np.histogram(alpha[observed & ~right], ALPHA_EDGES)[0]]).astype(np.int64)
 
-  confusion, correct, labels_at = {}, {}, {}
+  confusion, correct, labels_at, calibration = {}, {}, {}, {}
   result_bayes = None
   for name in config.run.rules:
     rule = config.run.make_rule(name)
@@ -263,6 +270,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     ev = metrics.evaluate_map(voxels, gt, num_classes)
     confusion[name] = ev["confusion"]
     labels_at[name] = _labels_at(voxels, gt_coords)
+    calibration[name] = _calibration(voxels, gt_coords, gt_labels)
     if name == "bayes":
       result_bayes = ev
   for name, rule in config.fitted.items():
@@ -271,6 +279,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
                    rgb=getattr(sequence, "rgb", None))
     confusion[name] = metrics.evaluate_map(voxels, gt, num_classes)["confusion"]
     labels_at[name] = _labels_at(voxels, gt_coords)
+    calibration[name] = _calibration(voxels, gt_coords, gt_labels)
   features = feature_histograms(sequence.depth, predictions["mean"], predictions["var"],
                                 getattr(sequence, "rgb", None), sequence.camera, right,
                                 observed)
@@ -288,7 +297,7 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     hit = labels == gt_labels
     correct[name] = np.array([(hit & (category == c)).sum() for c in range(3)], np.int64)
   return {"confusion": confusion, "correct": correct, "headroom": headroom,
-          "alpha_hist": alpha_hist, "feature_hist": features,
+          "alpha_hist": alpha_hist, "feature_hist": features, "calibration": calibration,
           "pixels": {"right": int(right.sum()), "wrong": int((observed & ~right).sum())},
           "matched": result_bayes["matched"], "map_only": result_bayes["map_only"],
           "gt_only": result_bayes["gt_only"]}
@@ -377,6 +386,10 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
                     "median_wrong": histogram_median(hist[:, 1].sum(0)),
                     "auroc": _iv(stats.bootstrap(hist, metrics.auroc_from_histograms, **kw)),
                     "right_share": _iv(stats.bootstrap(pix, stats.ratio, **kw))}
+    if all("calibration" in r for r in seq):
+      res["ece"] = {display(m): _iv(stats.bootstrap(np.stack([r["calibration"][m] for r in seq]),
+                                                    metrics.ece_from_bins, **kw))
+                    for m in methods if m in seq[0]["calibration"]}
     if all("feature_hist" in r for r in seq):
       res["feature_auroc"] = {
           name: _iv(stats.bootstrap(np.stack([r["feature_hist"][name] for r in seq]),
@@ -473,6 +486,13 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
     lines.append(f"| {s} | {_cell(a['right_share'])} | {a['median_right']:.2f} | "
                  f"{a['median_wrong']:.2f} | {auroc_cell} |")
   parts.append("\n".join(lines))
+  if "ece" in first:
+    lines = [f"## Map calibration: ECE of the voxel posteriors (%, {metrics.CALIBRATION_BINS} "
+             f"bins of the top probability, {conf} bootstrap intervals; lower is better)", "",
+             head, rule]
+    for m in first["ece"]:
+      lines.append(f"| {m} | " + " | ".join(_cell(summary[s]["ece"][m]) for s in shifts) + " |")
+    parts.append("\n".join(lines))
   if "feature_auroc" in first:
     names = list(first["feature_auroc"])
     lines = [f"## Per-pixel features: AUROC of right vs wrong observations ({conf} bootstrap "
@@ -512,6 +532,8 @@ def _csv(summary: dict) -> str:
     for m, v in r.get("oracle_share", {}).items():
       row(s, "oracle_share", m, "miou_gain_share", v)
     row(s, "front_end", "alpha", "auroc", r["alpha"]["auroc"])
+    for m, v in r.get("ece", {}).items():
+      row(s, "ece", m, "ece", v)
     for name, v in r.get("feature_auroc", {}).items():
       row(s, "feature_auroc", name, "auroc", v)
     row(s, "front_end", "pixels", "right_share", r["alpha"]["right_share"])

@@ -122,6 +122,10 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   for name in (study.GLFS, "learned:ctx"):
     assert np.all(res["correct"][name] <= oracle)
   assert study.display("learned:ctx") == "Learned (ctx)" and study.display("glfs") == "GLFS"
+  # Reliability counts cover the GT voxels each map holds.
+  for name in (study.GLFS, "learned:ctx", "bayes"):
+    assert res["calibration"][name].shape == (jf.metrics.CALIBRATION_BINS, 3)
+    assert res["calibration"][name][:, 0].sum() == res["confusion"][name].sum()
   # Per-feature histograms hold every observation once, right then wrong.
   assert set(res["feature_hist"]) == set(observations.FEATURE_RANGES)
   for counts in res["feature_hist"].values():
@@ -217,6 +221,12 @@ def test_tiny_study_end_to_end(tmp_path):
   assert set(aurocs) == set(observations.FEATURE_RANGES)
   assert all(0.0 <= v["estimate"] <= 1.0 for v in aurocs.values() if v["estimate"] is not None)
   assert "## Per-pixel features: AUROC" in out["table"] and "| incidence |" in out["table"]
+  # Map calibration per method (not the oracle), from the summed reliability counts.
+  assert set(shift1["ece"]) == set(shift1["methods"]) - {"Oracle"}
+  bins = sum(r["calibration"][study.LEARNED] for r in out["sequences"] if r["shift"] == 1.0)
+  assert shift1["ece"]["Learned"]["estimate"] == pytest.approx(
+      float(jf.metrics.ece_from_bins(bins)))
+  assert "## Map calibration: ECE" in out["table"]
 
 
 def test_cli_study_help_and_bad_input(capsys):

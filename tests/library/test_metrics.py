@@ -81,3 +81,33 @@ def test_per_frame_miou_averages_each_frames_own_miou():
   assert metrics.pixel_miou(cm) == pytest.approx((6 / 8 + 0.0) / 2)
   with pytest.raises(ValueError, match="per_frame_miou"):
     metrics.per_frame_miou(pred[0], labels[0], 2)
+
+
+def test_calibration_bins_and_ece_by_hand():
+  # Two voxels at confidence 0.9 (one right), one at 0.55 (right), K = 2.
+  post = np.array([[0.9, 0.1], [0.1, 0.9], [0.55, 0.45]])
+  labels = np.array([0, 0, 0])
+  bins = metrics.calibration_bins(post, labels, num_bins=10)
+  assert bins[9].tolist() == [2.0, 1.0, 1.8] and bins[5].tolist() == [1.0, 1.0, 0.55]
+  assert bins.sum(0)[0] == 3
+  # ECE = (2/3)·|0.5 − 0.9| + (1/3)·|1 − 0.55|
+  assert float(metrics.ece_from_bins(bins)) == pytest.approx(2 / 3 * 0.4 + 1 / 3 * 0.45)
+  # Counts of two maps add up; the ECE of a perfectly calibrated map is 0; no voxels: NaN.
+  both = metrics.calibration_bins(post[:2], labels[:2], num_bins=10) + metrics.calibration_bins(
+      post[2:], labels[2:], num_bins=10)
+  np.testing.assert_allclose(both, bins)
+  assert float(metrics.ece_from_bins(metrics.calibration_bins(
+      np.array([[1.0, 0.0]]), np.array([0])))) == 0.0
+  assert np.isnan(metrics.ece_from_bins(np.zeros((15, 3))))
+  # A NumPy loop over voxels gives the same ECE on random posteriors.
+  rng = np.random.default_rng(0)
+  post = rng.dirichlet(np.ones(4), 500)
+  labels = rng.integers(0, 4, 500)
+  conf, pred = post.max(1), post.argmax(1)
+  ece = 0.0
+  for b in range(15):
+    inside = (conf >= b / 15) & ((conf < (b + 1) / 15) if b < 14 else (conf <= 1))
+    if inside.any():
+      ece += inside.mean() * abs((pred[inside] == labels[inside]).mean() - conf[inside].mean())
+  assert float(metrics.ece_from_bins(metrics.calibration_bins(post, labels))) == pytest.approx(
+      ece, abs=1e-9)
