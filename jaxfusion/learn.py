@@ -304,6 +304,39 @@ def weight_grid(hparams: dict, alpha_pred: jax.Array, max_prob: jax.Array, *,
   return jax.vmap(lambda a: jax.vmap(lambda p: one(a, p))(max_prob))(alpha_pred)
 
 
+def map_calibration(rule: rules_lib.FusionRule, data: dict, *, voxel_size: float = 0.1) -> dict:
+  """The ECE of the maps `rule` fuses from a batch (`fit`'s batches), against its GT voxels.
+
+  Each sequence is fused alone (`fuse_sequence`, masked frames left out), its posteriors at the
+  GT voxels it holds are binned (`metrics.calibration_bins`) and the counts summed over the
+  batch.
+
+  Returns:
+    dict with `ece` (float) and `bins` (`(B, 3)` list).
+  """
+  from jaxfusion import fusion  # pylint: disable=import-outside-toplevel
+  from jaxfusion import metrics  # pylint: disable=import-outside-toplevel
+  from jaxfusion import readout  # pylint: disable=import-outside-toplevel
+  from jaxfusion import state as state_lib  # pylint: disable=import-outside-toplevel
+  frames, mask = data["frames"], np.asarray(data["mask"])
+  camera, _ = batch.camera_batch(data["camera"], None)
+  total = np.zeros((metrics.CALIBRATION_BINS, 3))
+  num_classes = int(np.shape(frames.probs)[-1])
+  for b in range(mask.shape[0]):
+    seq = jax.tree.map(lambda x, b=b: None if x is None else np.asarray(x[b]), frames)
+    seq = seq._replace(depth=np.where(mask[b][:, None, None], seq.depth, 0.0))
+    state = state_lib.init_map(capacity=int(data["capacity"]), num_classes=num_classes,
+                               voxel_size=voxel_size, rule=rule)
+    voxels = readout.read_map(fusion.fuse_sequence(state, seq, camera, rule))
+    labels = np.asarray(data["labels"][b])
+    keep = labels >= 0
+    map_index, gt_index = metrics.match_voxels(voxels["coords"],
+                                               np.asarray(data["coords"][b])[keep])
+    total += metrics.calibration_bins(np.asarray(voxels["posterior"])[map_index],
+                                      labels[keep][gt_index])
+  return {"ece": float(metrics.ece_from_bins(total)), "bins": total.tolist()}
+
+
 def rule_of(family: str, params: dict, *, aggregate: str = "sum") -> rules_lib.FusionRule:
   """The FusionRule of a fitted family's parameters ("learned" or "glfs", as `params.json`
   stores them)."""

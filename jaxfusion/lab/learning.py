@@ -18,6 +18,7 @@ import numpy as np
 
 from jaxfusion import context as context_lib
 from jaxfusion import learn
+from jaxfusion import rules
 from jaxfusion import tune
 from jaxfusion.lab import figures
 from jaxfusion.lab import reports
@@ -188,6 +189,11 @@ def command(args) -> int:
       "select": args.select, "validation_miou": result.validation_miou,
       "seconds": {"data": loaded, "fit": result.seconds,
                   "total": time.perf_counter() - started},
+      "validation_ece": {
+          "kept": learn.map_calibration(result.rule, validation,
+                                        voxel_size=args.voxel_size)["ece"],
+          "bayes": learn.map_calibration(rules.bayes(aggregate=args.aggregate), validation,
+                                         voxel_size=args.voxel_size)["ece"]},
       "family": args.family, "num_parameters": int(sum(
           np.size(v) for k, v in result.params.items() if k not in ("eps", "alpha0", "context"))),
       "params": result.params}

@@ -155,3 +155,19 @@ def test_fit_other_families_and_round_trip_their_files(batches, family, tmp_path
     learn.load_rule(str(path))
   with pytest.raises(ValueError, match="family must be one of"):
     learn.fit(train, validation, family="mlp")
+
+
+def test_map_calibration_counts_every_held_gt_voxel_once(batches):
+  train, _ = batches
+  out = learn.map_calibration(jf.rules.bayes(), train, voxel_size=0.25)
+  bins = np.asarray(out["bins"])
+  held = 0
+  for scene_frames, coords, labels in train["scenes"]:
+    state = jf.init_map(capacity=train["capacity"], num_classes=4, voxel_size=0.25,
+                        rule=jf.rules.bayes())
+    voxels = jf.read_map(jf.fuse_sequence(state, scene_frames, train["camera"], jf.rules.bayes()))
+    held += int(jf.metrics.evaluate_map(voxels, {"coords": coords, "labels": labels},
+                                        4)["confusion"].sum())
+  assert bins[:, 0].sum() == held > 0
+  assert 0.0 <= out["ece"] <= 1.0
+  assert out["ece"] == pytest.approx(float(jf.metrics.ece_from_bins(bins)))
