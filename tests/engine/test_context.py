@@ -50,7 +50,7 @@ def test_every_feature_matches_numpy():
     np.testing.assert_allclose(got[..., f], want[..., f], atol=2e-6, rtol=1e-5, err_msg=name)
 
 
-@hypothesis.settings(max_examples=12, deadline=None)
+@hypothesis.settings(max_examples=8, deadline=None)
 @hypothesis.given(seed=st.integers(0, 2**16), h_=st.integers(3, 11), w_=st.integers(3, 11),
                   holes=st.floats(0.0, 0.4), floats=st.booleans())
 def test_random_frames_match_numpy(seed, h_, w_, holes, floats):
@@ -252,6 +252,7 @@ def test_inputs_are_checked():
     jf.rules.glfs(num_classes=3, depth_edges=(2.0, 1.0))
 
 
+@pytest.mark.slow
 def test_gradient_reaches_the_context_weights():
   frames = _frames(8, n=2)
   names = ("depth", "incidence", "luminance")
