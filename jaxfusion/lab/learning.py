@@ -77,6 +77,10 @@ def add_parser(subparsers) -> None:
   parser.add_argument("--eval-every", type=int, default=10)
   parser.add_argument("--patience", type=int, default=4)
   parser.add_argument("--scalar-beta", action="store_true", help="one β (default: per class)")
+  parser.add_argument("--objective", choices=tune.OBJECTIVES, default=tune.DEFAULT_OBJECTIVE,
+                      help="the fit's loss: the mean cross-entropy over GT voxels (dominated by "
+                           "the most frequent class) or the pooled soft IoU (class-balanced, "
+                           "as mIoU)")
   parser.add_argument("--family", choices=learn.FAMILIES, default="learned",
                       help="the rule family to fit: the learned rule (docs/equations.md §3.9) or "
                            "GLFS (§3.10, a weight per class × depth bin × incidence bin)")
@@ -171,6 +175,7 @@ def command(args) -> int:
                      eval_every=args.eval_every, patience=args.patience,
                      per_class_beta=not args.scalar_beta, aggregate=args.aggregate,
                      voxel_size=args.voxel_size, select=args.select, progress=progress,
+                     objective=args.objective,
                      family=args.family, context=context_names(args.context),
                      per_class_weights=args.per_class_weights, gate_size=args.gate_size)
   bar.close()
@@ -183,7 +188,7 @@ def command(args) -> int:
                "shifts": args.shifts, "frames": args.frames, "height": args.height,
                "width": args.width, "num_samples": args.num_samples,
                "front_end": train["source"], "voxel_size": args.voxel_size},
-      "objective": "cross_entropy", "steps_run": result.steps_run,
+      "objective": args.objective, "steps_run": result.steps_run,
       "stopped_early": result.stopped_early, "best_step": result.best_step,
       "train_losses": result.train_losses, "validation": result.validation,
       "select": args.select, "validation_miou": result.validation_miou,
