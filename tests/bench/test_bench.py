@@ -96,3 +96,14 @@ def test_bench_room_lies_off_the_voxel_grid():
   on = _face_shares(scene.make_frames(4, aligned=True, **kwargs))
   assert np.all(off < 0.15), off
   assert np.max(on) > 0.2, on
+
+
+def test_context_bench_runs_on_tiny_frames(tmp_path):
+  from bench import context as context_bench  # pylint: disable=import-outside-toplevel
+  results = context_bench.run(num_frames=2, height=24, width=32, num_classes=5, repeats=1,
+                              capacity=2**12)
+  assert set(results["rows"]) == {"robust_dr", "learned", "learned_context", "bayes", "glfs",
+                                  "pixel_context"}
+  assert all(r["ms_per_frame"] > 0 for r in results["rows"].values())
+  assert {(p["rule"], p["peer"]) for p in results["pairs"]} >= set(context_bench.PAIRS)
+  assert "| learned_context |" in context_bench.to_markdown(results)

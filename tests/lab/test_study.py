@@ -238,6 +238,10 @@ def test_cli_study_help_and_bad_input(capsys):
   assert "shifts must lie in [0, 1]" in err and "Traceback" not in err
   with pytest.raises(ValueError, match="bayes"):
     study.StudyConfig.of(rules=("robust_dr",)).validate()
+  assert cli.main(["study", "--variant", "no-equals-sign"]) == 2
+  assert "--variant takes TAG=PARAMS_JSON" in capsys.readouterr().err
+  assert cli.main(["study", "--glfs", "models/weights/learned_rule/params.json"]) == 2
+  assert "not a GLFS table" in capsys.readouterr().err
 
 
 def test_analyze_sequence_rejects_mismatched_predictions():
