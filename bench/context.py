@@ -61,7 +61,8 @@ def _time_rule(rule, frames, rgb, *, capacity, repeats, voxel_size) -> float:
   dev = [jax.device_put(jf.Frame(frames.depth[t], frames.poses[t], frames.probs[t],
                                  frames.var[t], rgb[t])) for t in range(len(frames.depth))]
   state = jf.init_map(capacity=capacity, num_classes=k, voxel_size=voxel_size, rule=rule)
-  fuser = suite._Fuser(state, dev, frames.camera, rule, jf.fuse_frame)  # pylint: disable=protected-access
+  # pylint: disable-next=protected-access
+  fuser = suite._Fuser(state, dev, frames.camera, rule, jf.fuse_frame)
   return suite.median_time(fuser, repeats)
 
 

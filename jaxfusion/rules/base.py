@@ -6,7 +6,8 @@ A rule is split into kernels written for one item; the engine vmaps them at the 
 - `observe(probs, var, hparams) -> PixelTerms`: per-pixel terms, from one pixel's `(K,)` class
   probabilities and variances. A rule whose static `context` names per-pixel context features
   (`jaxfusion.context.FEATURES`, docs/equations.md §2.5) is called as
-  `observe(probs, var, ctx, hparams)` with that pixel's `(F,)` features in `context` order. The engine reduces them over the pixels that fall in a voxel in
+  `observe(probs, var, ctx, hparams)` with that pixel's `(F,)` features in `context` order.
+  The engine reduces them over the pixels that fall in a voxel in
   this frame: `sums` are summed (or averaged, under `aggregate="mean"`), `maxes` are maxed.
 - `update(row, obs, hparams) -> row`: applies one frame's reduced observation to one voxel.
 - `posterior(row) -> (K,)`: the normalised class distribution the voxel reports.
