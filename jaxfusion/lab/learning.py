@@ -140,7 +140,7 @@ def command_line(args) -> str:
     return " ".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)
   parts = [f"--{k.replace('_', '-')}" + ("" if v is True else f" {value(v)}")
            for k, v in sorted(vars(args).items())
-           if k not in _NOT_OPTIONS and v is not None and v is not False]
+           if k not in _NOT_OPTIONS and v is not None and v is not False and v != []]
   return " ".join(["jaxfusion learn-rule"] + parts)
 
 
