@@ -376,13 +376,7 @@ def load_params(path: str) -> dict:
   Raises:
     ValueError: not such a file, or parameters `rules.learned` refuses (names, shapes, ranges).
   """
-  try:
-    with open(path, encoding="utf-8") as f:
-      payload = json.load(f)
-  except json.JSONDecodeError as e:
-    raise ValueError(f"{path} is not a learned-rule parameter file (not JSON: {e})") from e
-  params = payload.get("params") if isinstance(payload, dict) else None
-  if not isinstance(params, dict):
-    raise ValueError(f"{path} is not a learned-rule parameter file (no 'params' object)")
-  rules_lib.learned(params)      # validates names, shapes and ranges
+  family, params = load_rule(path)      # validates names, shapes and ranges
+  if family != "learned":
+    raise ValueError(f"{path} holds a {family!r} rule, not the learned rule's parameters")
   return params
