@@ -57,10 +57,15 @@ def _shift(x, du: int, dv: int, fill):
 _NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
 
+def _inside(shape, du: int, dv: int):
+  """`(H, W) bool`: the neighbour (du, dv) of each pixel lies inside the image."""
+  return _shift(jnp.ones(shape, bool), du, dv, False)
+
+
 def _discontinuity(depth, ok, du, dv):
   """`(H, W) bool`: a discontinuity between each pixel and its neighbour (du, dv) (False where
   the neighbour lies outside the image)."""
-  inside = _shift(jnp.ones(depth.shape, bool), du, dv, False)
+  inside = _inside(depth.shape, du, dv)
   z_q = _shift(depth, du, dv, 0.0)
   ok_q = _shift(ok, du, dv, False)
   jump = jnp.abs(depth - z_q) > JUMP * jnp.minimum(depth, z_q)
@@ -92,9 +97,7 @@ def _incidence(points, depth, ok, breaks):
     x_p = jnp.stack([_shift(points[..., c], du_p, dv_p, 0.0) for c in range(3)], -1)
     x_m = jnp.stack([_shift(points[..., c], du_m, dv_m, 0.0) for c in range(3)], -1)
     ok_p, ok_m = ~breaks[axis_plus], ~breaks[axis_minus]
-    inside_p = _shift(jnp.ones(depth.shape, bool), du_p, dv_p, False)
-    inside_m = _shift(jnp.ones(depth.shape, bool), du_m, dv_m, False)
-    ok_p, ok_m = ok_p & inside_p, ok_m & inside_m
+    ok_p, ok_m = ok_p & _inside(depth.shape, du_p, dv_p), ok_m & _inside(depth.shape, du_m, dv_m)
     g = jnp.where((ok_p & ok_m)[..., None], x_p - x_m,
                   jnp.where(ok_p[..., None], x_p - points, points - x_m))
     return g, ok_p | ok_m
@@ -170,8 +173,7 @@ def pixel_context(depth: jax.Array, probs: jax.Array, camera: camera_lib.Camera,
     label = jnp.argmax(jnp.where(jnp.isfinite(p), jnp.maximum(p, 0.0), 1.0 / p.shape[-1]), -1)
     edges = jnp.zeros(label.shape, bool)
     for du, dv in _NEIGHBOURS:
-      inside = _shift(jnp.ones(label.shape, bool), du, dv, False)
-      edges = edges | (inside & (label != _shift(label, du, dv, -1)))
+      edges = edges | (_inside(label.shape, du, dv) & (label != _shift(label, du, dv, -1)))
     out["label_edge"] = _edge_distance(edges)
   if "radius" in names:
     h, w = z.shape

@@ -33,6 +33,7 @@ sets and `grad` work without recompiling when values change; the context names a
 weights and γ `(5,)`.
 """
 
+import functools
 import math
 
 import jax
@@ -169,21 +170,13 @@ def _observe(probs, var, hparams):
   return _observe_terms(probs, var, hparams, None, ())
 
 
-def _observer_with_context(names):
+@functools.lru_cache(maxsize=None)
+def _context_observer(names):
+  """The observe kernel for a tuple of context names, one per tuple, so that rules with the same
+  context share it (the same static field: stacking and the jit cache see equal rules)."""
   def observe(probs, var, ctx, hparams):
     return _observe_terms(probs, var, hparams, ctx, names)
   return observe
-
-
-# One observe kernel per tuple of context names, so that rules with the same context share it
-# (the same static field: stacking and the jit cache see equal rules).
-_CONTEXT_OBSERVERS = {}
-
-
-def _context_observer(names):
-  if names not in _CONTEXT_OBSERVERS:
-    _CONTEXT_OBSERVERS[names] = _observer_with_context(names)
-  return _CONTEXT_OBSERVERS[names]
 
 
 def _js_divergence(p, q):
