@@ -55,6 +55,11 @@ _ALPHA_SCALE = 10.0
 PARAM_NAMES = ("theta", "bias", "context_theta", "mix", "gate", "beta", "eps", "alpha0")
 
 
+def _one_hot(probs, pred):
+  """`(K,) bool`: True at class `pred` only."""
+  return jnp.arange(probs.shape[-1]) == pred
+
+
 def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
   """The six per-pixel features `φ` of one pixel's `(K,)` MC mean and variance (`(6,)` float32),
   ε the scalar variance shift of α.
@@ -63,16 +68,19 @@ def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
   means and zero variances.
   """
   k = probs.shape[-1]
-  top2 = jax.lax.top_k(probs, 2)[0]
-  pred = jnp.argmax(probs)
-  v_pred = jnp.clip(var[pred], 0.0, 0.25)
-  p_pred = probs[pred]
+  # The predicted class by a mask, not by indexing: under the engine's vmap over pixels, `x[pred]`
+  # and `top_k` become a gather and a sort per pixel, 9× the cost of the rest on XLA-CPU
+  # (bench/context.py). The values are the same bit for bit.
+  chosen = _one_hot(probs, jnp.argmax(probs))
+  p_pred = jnp.max(probs)
+  second = jnp.max(jnp.where(chosen, -jnp.inf, probs))
+  v_pred = jnp.clip(jnp.sum(jnp.where(chosen, var, 0.0)), 0.0, 0.25)
   bound = p_pred * (1.0 - p_pred)
   rel = jnp.where(bound > 0, jnp.minimum(v_pred / jnp.where(bound > 0, bound, 1.0), 1.0), 0.0)
   sum_var = jnp.sum(jnp.clip(var, 0.0, 0.25))
   return jnp.stack([
-      top2[0],
-      top2[0] - top2[1],
+      p_pred,
+      p_pred - second,
       numerics.entropy(probs) / math.log(k),
       -jnp.log(v_pred + eps) / _ALPHA_SCALE,
       jnp.sqrt(sum_var + 1e-12),
@@ -100,7 +108,10 @@ def pixel_weight(phi: jax.Array, hparams: dict, ctx: jax.Array = None,
     pred: `()` int predicted class ĉ, needed when a parameter is per class.
   """
   def pick(x, per_class_ndim):
-    return x[pred] if jnp.ndim(x) == per_class_ndim else x
+    if jnp.ndim(x) != per_class_ndim:
+      return x
+    chosen = jnp.arange(x.shape[0]) == pred   # the row of ĉ by a mask (see `features`)
+    return jnp.sum(jnp.where(chosen.reshape((-1,) + (1,) * (x.ndim - 1)), x, 0.0), axis=0)
   z = jnp.sum(phi * pick(hparams["theta"], 2), axis=-1) + pick(hparams["bias"], 1)
   if ctx is not None:
     z = z + jnp.sum(ctx * pick(hparams["context_theta"], 2), axis=-1)
