@@ -98,6 +98,7 @@ def test_bench_room_lies_off_the_voxel_grid():
   assert np.max(on) > 0.2, on
 
 
+@pytest.mark.slow   # six rules compiled end to end: 20 s, most of it compile
 def test_context_bench_runs_on_tiny_frames(tmp_path):
   from bench import context as context_bench  # pylint: disable=import-outside-toplevel
   results = context_bench.run(num_frames=2, height=24, width=32, num_classes=5, repeats=1,
