@@ -55,11 +55,6 @@ _ALPHA_SCALE = 10.0
 PARAM_NAMES = ("theta", "bias", "context_theta", "mix", "gate", "beta", "eps", "alpha0")
 
 
-def _one_hot(num_classes: int, pred):
-  """`(K,) bool`: True at class `pred` only."""
-  return jnp.arange(num_classes) == pred
-
-
 def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
   """The six per-pixel features `φ` of one pixel's `(K,)` MC mean and variance (`(6,)` float32),
   ε the scalar variance shift of α.
@@ -71,7 +66,7 @@ def features(probs: jax.Array, var: jax.Array, eps) -> jax.Array:
   # The predicted class by a mask, not by indexing: under the engine's vmap over pixels, `x[pred]`
   # and `top_k` become a gather and a sort per pixel, 9× the cost of the rest on XLA-CPU
   # (bench/context.py). The values are the same bit for bit.
-  chosen = _one_hot(k, jnp.argmax(probs))
+  chosen = jax.nn.one_hot(jnp.argmax(probs), k, dtype=bool)
   p_pred = jnp.max(probs)
   second = jnp.max(jnp.where(chosen, -jnp.inf, probs))
   v_pred = jnp.clip(jnp.sum(jnp.where(chosen, var, 0.0)), 0.0, 0.25)
@@ -110,7 +105,7 @@ def pixel_weight(phi: jax.Array, hparams: dict, ctx: jax.Array = None,
   def pick(x, per_class_ndim):
     if jnp.ndim(x) != per_class_ndim:
       return x
-    chosen = _one_hot(x.shape[0], pred)   # the row of ĉ by a mask (see `features`)
+    chosen = jax.nn.one_hot(pred, x.shape[0], dtype=bool)   # ĉ's row by a mask (`features`)
     return jnp.sum(jnp.where(chosen.reshape((-1,) + (1,) * (x.ndim - 1)), x, 0.0), axis=0)
   z = jnp.sum(phi * pick(hparams["theta"], 2), axis=-1) + pick(hparams["bias"], 1)
   if ctx is not None:
