@@ -137,6 +137,50 @@ def nyu40_to_scannet20_lut() -> np.ndarray:
 
 NYU40_TO_SCANNET20 = nyu40_to_scannet20_lut()
 
+# The embedded world's classes as NYU40 ids, for writing it in ScanNet's layout (`label-filt/`
+# PNGs and the labelled mesh hold NYU40 ids). NYU40 has no bottle and no plant: they take the
+# two "other" ids that no other embedded class uses, so that the table inverts exactly
+# (`LABEL_SPACES["embedded"]`). The embedded background (walls, floor, ceiling) is `wall`.
+EMBEDDED_TO_NYU40 = np.array([1, 40, 5, 7, 38, 6, 25], np.int32)
+
+
+def nyu40_to_embedded_lut() -> np.ndarray:
+  """`(256,) int32` lookup from NYU40 ids to the embedded world's classes (the inverse of
+  `EMBEDDED_TO_NYU40`; every other id is `IGNORE_LABEL`)."""
+  lut = np.full((256,), IGNORE_LABEL, np.int32)
+  lut[EMBEDDED_TO_NYU40] = np.arange(len(CLASS_NAMES), dtype=np.int32)
+  return lut
+
+
+def nyu40_identity_lut() -> np.ndarray:
+  """`(256,) int32` lookup that keeps NYU40 ids 1 … 40 as classes 0 … 39 (0 = unannotated and
+  ids above 40 are `IGNORE_LABEL`)."""
+  lut = np.full((256,), IGNORE_LABEL, np.int32)
+  lut[1:41] = np.arange(40, dtype=np.int32)
+  return lut
+
+
+# The label spaces a dataset's GT can be read into: name → (class names, NYU40 id → class
+# lookup `(256,) int32`, IGNORE_LABEL where an id has no class). `scannet12` is the paper's
+# (and the ScanNet reader's default), `scannet20` the ScanNet benchmark's, `nyu40` the 40 NYU
+# classes themselves, `embedded` the embedded world's 7 (as `EMBEDDED_TO_NYU40` writes them).
+LABEL_SPACES = {
+    "scannet12": (SCANNET_CLASS_NAMES, NYU40_TO_SCANNET12),
+    "scannet20": (SCANNET20_CLASS_NAMES, NYU40_TO_SCANNET20),
+    "nyu40": (NYU40_CLASS_NAMES[1:], nyu40_identity_lut()),
+    "embedded": (CLASS_NAMES, nyu40_to_embedded_lut()),
+}
+
+
+def label_space(name: str) -> tuple:
+  """`(class_names, lut)` of a label space of `LABEL_SPACES`; raises ValueError naming them."""
+  if name not in LABEL_SPACES:
+    raise ValueError(f"unknown label space {name!r}; the label spaces are "
+                     f"{', '.join(LABEL_SPACES)}")
+  names, lut = LABEL_SPACES[name]
+  return tuple(names), lut
+
+
 # The class maps shipped as files (`jaxfusion/datasets/class_maps/NAME.json`).
 CLASS_MAPS = ("nyu40_to_scannet12", "nyu40_to_scannet20")
 

@@ -24,8 +24,9 @@ import os
 import numpy as np
 
 from jaxfusion.camera import Camera
+from jaxfusion.datasets import classes
 from jaxfusion.datasets import files
-from jaxfusion.datasets.classes import IGNORE_LABEL, NYU40_TO_SCANNET12, SCANNET_CLASS_NAMES
+from jaxfusion.datasets.classes import IGNORE_LABEL, NYU40_TO_SCANNET12
 from jaxfusion.datasets.sequence import RGBDSequence
 
 DEPTH_SCALE = 1000.0  # ScanNet depth PNGs hold millimetres
@@ -81,11 +82,12 @@ def read_label_tsv(path: str) -> np.ndarray:
   return lut
 
 
-def nyu40_to_classes(nyu40: np.ndarray) -> np.ndarray:
-  """`(H, W) int32` 12-class labels from NYU40 ids (unknown ids → `IGNORE_LABEL`)."""
+def nyu40_to_classes(nyu40: np.ndarray, lut: np.ndarray = NYU40_TO_SCANNET12) -> np.ndarray:
+  """`(H, W) int32` class labels from NYU40 ids through a label space's lookup (default the
+  paper's 12 classes; unknown ids → `IGNORE_LABEL`)."""
   nyu40 = np.asarray(nyu40, np.int64)
-  ok = (nyu40 >= 0) & (nyu40 < len(NYU40_TO_SCANNET12))
-  return np.where(ok, NYU40_TO_SCANNET12[np.where(ok, nyu40, 0)], IGNORE_LABEL).astype(np.int32)
+  ok = (nyu40 >= 0) & (nyu40 < len(lut))
+  return np.where(ok, lut[np.where(ok, nyu40, 0)], IGNORE_LABEL).astype(np.int32)
 
 
 def _check_aspect(path: str, shape, depth_shape) -> None:
@@ -98,7 +100,8 @@ def _check_aspect(path: str, shape, depth_shape) -> None:
 
 
 def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool = False,
-                 label_tsv=None, depth_scale: float = DEPTH_SCALE, name=None) -> RGBDSequence:
+                 label_tsv=None, depth_scale: float = DEPTH_SCALE, name=None,
+                 label_space: str = "scannet12") -> RGBDSequence:
   """Loads an exported ScanNet scene as an `RGBDSequence`.
 
   Args:
@@ -111,10 +114,12 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
       ScanNet ids rather than NYU40 ids.
     depth_scale: depth PNG units per metre.
     name: sequence name (default: the folder name).
+    label_space: the classes the NYU40 GT labels are read into (`classes.LABEL_SPACES`:
+      "scannet12", the paper's, by default; "scannet20", "nyu40", "embedded").
 
   Returns:
     `RGBDSequence` with the depth intrinsics, colour resized to the depth resolution, and
-    `labels` over `SCANNET_CLASS_NAMES` when `label-filt/` exists (else None).
+    `labels` over the label space's classes when `label-filt/` exists (else None).
 
   Raises:
     FileNotFoundError: a required folder or file is missing (without `skip_bad`).
@@ -123,6 +128,7 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
   import cv2  # pylint: disable=import-outside-toplevel  (heavy: imported where used)
   if stride < 1:
     raise ValueError(f"stride must be ≥ 1; got {stride}")
+  class_names, lut = classes.label_space(label_space)
   path = os.path.abspath(path)
   for sub in ("color", "depth", "pose"):
     if not os.path.isdir(os.path.join(path, sub)):
@@ -190,7 +196,7 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
                          0)
         raw = cv2.resize(raw.astype(np.int32), (size[1], size[0]),
                          interpolation=cv2.INTER_NEAREST)
-        lab = nyu40_to_classes(raw)
+        lab = nyu40_to_classes(raw, lut)
     except (files.BadFileError, FileNotFoundError) as e:
       if not skip_bad:
         raise
@@ -205,8 +211,8 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
   if not kept:
     raise ValueError(f"no valid frames in ScanNet folder {path}")
   return RGBDSequence(
-      name=name or os.path.basename(path), class_names=SCANNET_CLASS_NAMES, camera=camera,
+      name=name or os.path.basename(path), class_names=class_names, camera=camera,
       rgb=np.stack(rgbs), depth=np.stack(depths), T_world_cam=np.stack(poses),
       labels=None if labels is None else np.stack(labs),
       info={"source": "scannet", "path": path, "frame_ids": kept, "stride": stride,
-            "skipped": skipped, "num_skipped": len(skipped)})
+            "skipped": skipped, "num_skipped": len(skipped), "label_space": label_space})
