@@ -3,7 +3,10 @@
 A sequence spec is a short string:
 
 * `office:0` — an embedded sequence, `ENV:TRAJECTORY` (test domain); `office:0:train` for the
-  training domain. ENV is `office` or `house`, TRAJECTORY 0, 1 or 2.
+  training domain. ENV is `office` or `house`, TRAJECTORY 0, 1 or 2. A layout seed and a
+  domain shift may follow, in any order after the trajectory: `office:0:s1` (layout seed 1),
+  `office:0:s1:shift0.5`, `house:2:train:s11`; without them the command's own seed and shift
+  apply (`load_spec`'s `layout_seed`, `shift`).
 * `scannet:PATH` — an exported ScanNet scene folder (`load_scannet`).
 * `tum:PATH` — a TUM RGB-D sequence folder (`load_tum`).
 * `saved:PATH` — a folder written by `RGBDSequence.save` (`load_sequence`).
@@ -15,6 +18,7 @@ rendered for one layout seed is the *unit* `f"{name}_s{seed}"` (`unit_name`), th
 and caches use.
 """
 
+import dataclasses
 import os
 from typing import NamedTuple, Optional
 
@@ -36,28 +40,66 @@ class SequenceSpec(NamedTuple):
     trajectory: trajectory index of an embedded sequence (None otherwise).
     domain: "test" or "train" appearance of an embedded sequence (None otherwise).
     path: the folder of a ScanNet, TUM or saved sequence (None for an embedded one).
+    layout_seed: the embedded layout seed the spec names (None: the command's).
+    shift: the embedded domain shift the spec names (None: the command's).
   """
   kind: str
   env: Optional[str] = None
   trajectory: Optional[int] = None
   domain: Optional[str] = None
   path: Optional[str] = None
+  layout_seed: Optional[int] = None
+  shift: Optional[float] = None
 
   def __str__(self) -> str:
     if self.kind == "synthetic":
       tail = "" if self.domain == "test" else f":{self.domain}"
+      tail += "" if self.layout_seed is None else f":s{self.layout_seed}"
+      tail += "" if self.shift is None else f":shift{self.shift:g}"
       return f"{self.env}:{self.trajectory}{tail}"
     return f"{self.kind}:{self.path}"
 
+  @property
+  def is_embedded(self) -> bool:
+    return self.kind == "synthetic"
 
-def _embedded(env: str, trajectory: str, domain: str, spec: str) -> SequenceSpec:
+  def resolved(self, *, layout_seed: int = 0, shift: float = 1.0) -> "SequenceSpec":
+    """An embedded spec with its layout seed and shift filled in (the spec's own win); a
+    folder's spec unchanged."""
+    if not self.is_embedded:
+      return self
+    return self._replace(layout_seed=int(layout_seed if self.layout_seed is None
+                                         else self.layout_seed),
+                         shift=float(shift if self.shift is None else self.shift))
+
+
+_EMBEDDED_SYNTAX = (f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN][:sSEED][:shiftX] with ENV "
+                    f"{'|'.join(synthetic.ENVIRONMENTS)}, TRAJECTORY 0|1|2, DOMAIN test|train, "
+                    "a layout seed SEED ≥ 0 and a shift X in [0, 1] (e.g. office:0, "
+                    "office:0:s1:shift0.5)")
+
+
+def _embedded(env: str, trajectory: str, tail, spec: str) -> SequenceSpec:
+  domain, seed, shift = None, None, None
+  for part in tail:
+    if part in DOMAINS and domain is None:
+      domain = part
+    elif part[:1] == "s" and part[1:].isdigit() and seed is None:
+      seed = int(part[1:])
+    elif part.startswith("shift") and shift is None:
+      try:
+        shift = float(part[len("shift"):])
+      except ValueError:
+        raise ValueError(f"{_EMBEDDED_SYNTAX}; got {spec!r}") from None
+      if not 0.0 <= shift <= 1.0:
+        raise ValueError(f"{_EMBEDDED_SYNTAX}; got {spec!r}")
+    else:
+      raise ValueError(f"{_EMBEDDED_SYNTAX}; got {spec!r}")
   if (env not in synthetic.ENVIRONMENTS or trajectory not in
-      tuple(str(t) for t in range(synthetic.NUM_TRAJECTORIES)) or domain not in DOMAINS):
-    raise ValueError(
-        f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN] with ENV "
-        f"{'|'.join(synthetic.ENVIRONMENTS)}, TRAJECTORY 0|1|2 and DOMAIN test|train (e.g. "
-        f"office:0); got {spec!r}")
-  return SequenceSpec("synthetic", env=env, trajectory=int(trajectory), domain=domain)
+      tuple(str(t) for t in range(synthetic.NUM_TRAJECTORIES))):
+    raise ValueError(f"{_EMBEDDED_SYNTAX}; got {spec!r}")
+  return SequenceSpec("synthetic", env=env, trajectory=int(trajectory), domain=domain or "test",
+                      layout_seed=seed, shift=shift)
 
 
 def parse_spec(spec: str) -> SequenceSpec:
@@ -74,17 +116,18 @@ def parse_spec(spec: str) -> SequenceSpec:
     if len(parts) not in (2, 3):
       raise ValueError(f"synthetic data is synthetic:ENV/TRAJECTORY[/DOMAIN] (or ENV:TRAJECTORY)"
                        f"; got {spec!r}")
-    return _embedded(parts[0], parts[1], parts[2] if len(parts) == 3 else "test", spec)
+    return _embedded(parts[0], parts[1], parts[2:], spec)
   parts = spec.split(":")
-  if sep and len(parts) in (2, 3) and parts[0] in synthetic.ENVIRONMENTS:
-    return _embedded(parts[0], parts[1], parts[2] if len(parts) == 3 else "test", spec)
+  if sep and 2 <= len(parts) <= 5 and parts[0] in synthetic.ENVIRONMENTS:
+    return _embedded(parts[0], parts[1], parts[2:], spec)
   raise ValueError(f"a sequence is ENV:TRAJECTORY[:DOMAIN] (e.g. office:0), scannet:PATH, "
                    f"tum:PATH or saved:PATH; got {spec!r}")
 
 
 def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, width: int = 160,
               layout_seed: int = 0, shift: float = 1.0, stride: int = 1,
-              skip_bad: bool = True, **render) -> RGBDSequence:
+              skip_bad: bool = True, label_space: Optional[str] = None,
+              **render) -> RGBDSequence:
   """Loads the sequence a spec names.
 
   Args:
@@ -93,10 +136,12 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
       (default all).
     height: image rows of an embedded sequence (folders keep their size).
     width: image columns of an embedded sequence.
-    layout_seed: layout seed of the embedded world.
-    shift: test-domain shift in [0, 1] of an embedded sequence.
+    layout_seed: layout seed of the embedded world, unless the spec names one.
+    shift: test-domain shift in [0, 1] of an embedded sequence, unless the spec names one.
     stride: keep every stride-th frame of a folder.
     skip_bad: skip (and count, with one warning) unreadable frames of a folder.
+    label_space: the classes a ScanNet folder's NYU40 GT is read into
+      (`classes.LABEL_SPACES`; default "scannet12"); other kinds carry their own classes.
     **render: passed to `make_sequence` (`realism`, `sensing`).
 
   Returns:
@@ -108,18 +153,24 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
   """
   spec = parse_spec(spec) if isinstance(spec, str) else spec
   if spec.kind == "synthetic":
+    spec = spec.resolved(layout_seed=layout_seed, shift=shift)
     return synthetic.make_sequence(spec.env, spec.trajectory, domain=spec.domain,
                                    num_frames=60 if num_frames is None else num_frames,
-                                   height=height, width=width, seed=layout_seed, shift=shift,
-                                   **render)
+                                   height=height, width=width, seed=spec.layout_seed,
+                                   shift=spec.shift, **render)
   if not os.path.isdir(spec.path):
     raise FileNotFoundError(f"{spec.kind}: no such folder {spec.path!r}")
   if spec.kind == "saved":
     seq = RGBDSequence.load(spec.path)
     keep = list(range(0, len(seq), max(int(stride), 1)))[:num_frames]
-    return seq if len(keep) == len(seq) else seq.subset(keep)
-  loader = scannet.load_scannet if spec.kind == "scannet" else tum.load_tum
-  seq = loader(spec.path, stride=stride, max_frames=num_frames, skip_bad=skip_bad)
+    ids = list(seq.info.get("frame_ids", range(len(seq))))
+    info = dict(seq.info, frame_ids=[ids[i] for i in keep])
+    return dataclasses.replace(seq if len(keep) == len(seq) else seq.subset(keep), info=info)
+  if spec.kind == "scannet":
+    seq = scannet.load_scannet(spec.path, stride=stride, max_frames=num_frames,
+                               skip_bad=skip_bad, label_space=label_space or "scannet12")
+  else:
+    seq = tum.load_tum(spec.path, stride=stride, max_frames=num_frames, skip_bad=skip_bad)
   if len(seq) == 0:
     raise ValueError(f"{spec}: no readable frames")
   return seq

@@ -19,6 +19,7 @@
   tune-protocol   tune β on calibration layouts, judge on held-out ones (`lab.tuning`)
   simulate-sweep  fusion rules on a grid of a simulated front end (`lab.simulate`)
   learn-rule      fit the learned fusion rule on calibration layouts (`lab.learning`)
+  predict         a front end's predictions for sequences, as precomputed files (`lab.predict`)
 
 Each command module offers `add_parser(subparsers)` and `main(args) -> int`; shared flags are
 in `lab.flags`. Errors a user can fix (a wrong sequence spec, an unreadable folder, an unknown
@@ -32,7 +33,7 @@ import sys
 
 # The modules that register commands, in the order of `jaxfusion --help`.
 COMMAND_MODULES = ("demo", "maps", "data", "viewer.command", "study", "mesh_study", "tuning",
-                   "simulate", "learning")
+                   "simulate", "learning", "predict")
 
 
 def build_parser() -> argparse.ArgumentParser:

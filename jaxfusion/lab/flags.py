@@ -211,3 +211,174 @@ def add_study_run(parser: argparse.ArgumentParser, *, seed_aliases: Sequence[str
   add_mc_seed(parser)
   parser.add_argument("--resamples", type=int, default=None, help="bootstrap resamples")
   add_learned_rule(parser)
+
+
+# --- your data: one set of flags for every command that runs on sequences ---------------------
+def add_data(parser: argparse.ArgumentParser, *, calibration: bool = False,
+             validation: bool = False, required: bool = False,
+             predictions: bool = True) -> None:
+  """`--data SPEC [SPEC ...]` (the sequences, `datasets.sets.expand`) and, with `calibration` /
+  `validation`, `--calibration-data` / `--validation-data` the same way; `--stride`,
+  `--label-space`, `--class-map`, `--unmapped` and (with `predictions`) `--predictions ROOT`
+  and `--missing-predictions`."""
+  what = ("sequences: specs (office:0:s1, scannet:PATH, tum:PATH, saved:PATH), folder "
+          "patterns (scannet:/data/scans/scene00*) or text files of specs (@list.txt)")
+  parser.add_argument("--data", nargs="+", default=None, required=required, metavar="SPEC",
+                      help=what + "; default: the command's layout seeds of the embedded world")
+  if calibration:
+    parser.add_argument("--calibration-data", nargs="+", default=None, metavar="SPEC",
+                        help="the sequences to fit on, named as --data (disjoint from the "
+                             "judged ones)")
+  if validation:
+    parser.add_argument("--validation-data", nargs="+", default=None, metavar="SPEC",
+                        help="the sequences to select on, named as --data (disjoint from the "
+                             "others)")
+  parser.add_argument("--stride", type=int, default=1,
+                      help="keep every N-th frame of a folder (default 1)")
+  if predictions:
+    parser.add_argument("--predictions", default=None, metavar="ROOT",
+                        help="precomputed predictions: one folder per sequence, named after "
+                             "the sequence's own folder (ROOT/scene0000_00/), of per-frame "
+                             ".npz files (mean, var or samples; det optional); default: the "
+                             "front end")
+    parser.add_argument("--missing-predictions", choices=("error", "skip"), default="error",
+                        help="a frame without a prediction file: an error (default) or "
+                             "skipped and counted")
+  add_label_space(parser)
+
+
+def add_label_space(parser: argparse.ArgumentParser) -> None:
+  """`--label-space`, `--class-map`, `--unmapped`: the GT's classes and the predictions' map
+  onto them, declared once."""
+  from jaxfusion.datasets import classes  # pylint: disable=import-outside-toplevel
+  parser.add_argument("--label-space", choices=tuple(classes.LABEL_SPACES), default=None,
+                      help="the classes a ScanNet folder's NYU40 GT is read into (default "
+                           "scannet12, the paper's; embedded: the embedded world's 7)")
+  parser.add_argument("--class-map", default=None, metavar="FILE",
+                      help="remap the network's classes to the map's before fusion: a .json or "
+                           ".csv file (network class → map class; jaxfusion.classmap has the "
+                           "format) or a shipped map: " + ", ".join(classes.CLASS_MAPS))
+  parser.add_argument("--unmapped", choices=("other", "drop"), default=None,
+                      help="with --class-map: classes with no target go to the 'other' class or "
+                           "are dropped and the rest renormalised (default: the file's choice, "
+                           "else 'other' when the map has an 'other' class)")
+
+
+def class_map(args: argparse.Namespace):
+  """The `--class-map` (a file, or the name of a shipped one), or None."""
+  import os  # pylint: disable=import-outside-toplevel
+  from jaxfusion.datasets import classes  # pylint: disable=import-outside-toplevel
+  path = getattr(args, "class_map", None)
+  if not path:
+    return None
+  if not os.path.exists(path) and path in classes.CLASS_MAPS:
+    path = classes.class_map_path(path)
+  elif not os.path.exists(path):
+    raise FileNotFoundError(f"--class-map: no such file {path!r} (the shipped maps: "
+                            f"{', '.join(classes.CLASS_MAPS)})")
+  try:
+    return jf.ClassMap.from_file(path, unmapped=args.unmapped)
+  except ValueError as e:
+    raise ValueError(f"--class-map {e}") from None
+
+
+def data_sets(args: argparse.Namespace, *names: str) -> dict:
+  """`{flag: [SequenceSpec] or None}` of the data flags `names` (e.g. "data",
+  "calibration_data"), expanded, and refused in one line when two of them share a sequence."""
+  from jaxfusion.datasets import sets  # pylint: disable=import-outside-toplevel
+  out = {}
+  for name in names:
+    items = getattr(args, name, None)
+    flag = "--" + name.replace("_", "-")
+    out[flag] = None if items is None else sets.expand(items, what=flag)
+  sets.check_disjoint(out)
+  return out
+
+
+def data_options(args: argparse.Namespace, **defaults):
+  """The `lab.sequences.DataOptions` of the shared flags (sizes, stride, predictions, label
+  space, class map, voxel size, M, MC seed, cache); `defaults` fill the flags left unset
+  (e.g. the command's embedded sizes). `--frames` limits a folder's frames only when given."""
+  from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
+  values = dict(
+      num_frames=getattr(args, "frames", None), max_frames=getattr(args, "frames", None),
+      height=getattr(args, "height", None),
+      width=getattr(args, "width", None), stride=getattr(args, "stride", 1),
+      predictions=getattr(args, "predictions", None),
+      missing=getattr(args, "missing_predictions", "error"),
+      label_space=getattr(args, "label_space", None), class_map=class_map(args),
+      voxel_size=getattr(args, "voxel_size", None), num_samples=getattr(args, "num_samples", None),
+      mc_seed=getattr(args, "mc_seed", None), cache_dir=getattr(args, "cache", None))
+  for key, value in defaults.items():
+    if values.get(key) is None:
+      values[key] = value
+  return sequences.DataOptions(**{k: v for k, v in values.items() if v is not None}).validate()
+
+
+# --- every rule by one name --------------------------------------------------------------------
+RULE_NAMES_HELP = ("sum_probs, sum_labels, bayes, R, D, D+R, learned (the shipped learned rule), "
+                   "glfs (the shipped GLFS table) or a params.json of `jaxfusion learn-rule`")
+
+
+def resolve_rule(name: str, *, beta: Optional[float] = None, aggregate: str = "sum",
+                 num_classes: Optional[int] = None) -> tuple:
+  """`(key, FusionRule, reads_moments)` of any rule a command can name.
+
+  Args:
+    name: a paper rule (`rules.by_name`), "learned" / "glfs" (the shipped parameters), or the
+      path of a `learn-rule` params.json (either family).
+    beta: β of R and D+R (None: the rule's default).
+    aggregate: pixel aggregation.
+    num_classes: K of the data, checked against a fitted rule's parameters.
+
+  Returns:
+    The rule's key (a paper rule's, "learned", "glfs" or the file's family), the rule, and
+    whether it is fused on the MC moments (robust and fitted rules) rather than a dropout-off
+    pass.
+
+  Raises:
+    ValueError: an unknown name, or fitted parameters for another number of classes.
+  """
+  import os  # pylint: disable=import-outside-toplevel
+  from jaxfusion import learn  # pylint: disable=import-outside-toplevel
+  from jaxfusion.lab import config as config_lib  # pylint: disable=import-outside-toplevel
+  lowered = name.lower()
+  source = None
+  if lowered in ("learned", "glfs"):
+    import jaxfusion_models  # pylint: disable=import-outside-toplevel
+    source = str(jaxfusion_models.LEARNED_RULE_PATH if lowered == "learned"
+                 else jaxfusion_models.GLFS_PATH)
+  elif name.endswith(".json") or os.path.isfile(name):
+    if not os.path.isfile(name):
+      raise FileNotFoundError(f"--rule: no such parameter file {name!r}")
+    source = name
+  if source is not None:
+    family, params = learn.load_rule(source, aggregate=aggregate)
+    k = fitted_num_classes(family, params)
+    if num_classes is not None and k is not None and k != num_classes:
+      raise ValueError(f"--rule {name}: its parameters are fitted for {k} classes, the data has "
+                       f"{num_classes}; fit it for these classes with `jaxfusion learn-rule "
+                       "--data ...`")
+    return family, learn.rule_of(family, params, aggregate=aggregate), True
+  kwargs = {"aggregate": aggregate}
+  try:
+    key = jf.rules.by_name(name).name
+  except ValueError:
+    raise ValueError(f"--rule: unknown rule {name!r}; choose one of: {RULE_NAMES_HELP}"
+                     ) from None
+  if key in config_lib.ROBUST_RULES and beta is not None:
+    kwargs["beta"] = beta
+  return key, jf.rules.by_name(name, **kwargs), key in config_lib.ROBUST_RULES
+
+
+def fitted_num_classes(family: str, params: dict) -> Optional[int]:
+  """K a fitted rule's parameters are for (None when no parameter depends on K): GLFS's table
+  rows; the learned rule's per-class β, θ, b or context weights."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  if family == "glfs":
+    return int(np.shape(params["table"])[0])
+  for key, per_class_ndim in (("beta", 1), ("bias", 1), ("theta", 2), ("context_theta", 2)):
+    value = params.get(key)
+    if value is not None and np.ndim(value) == per_class_ndim:
+      return int(np.shape(value)[0])
+  return None

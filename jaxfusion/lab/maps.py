@@ -22,18 +22,7 @@ RUN_CHUNK = 16
 
 def _class_map(args):
   """The `--class-map` (a file, or the name of a shipped one), or None."""
-  if not args.class_map:
-    return None
-  path = args.class_map
-  if not os.path.exists(path) and path in datasets.classes.CLASS_MAPS:
-    path = datasets.classes.class_map_path(path)
-  elif not os.path.exists(path):
-    raise FileNotFoundError(f"--class-map: no such file {path!r} (the shipped maps: "
-                            f"{', '.join(datasets.classes.CLASS_MAPS)})")
-  try:
-    return jf.ClassMap.from_file(path, unmapped=args.unmapped)
-  except ValueError as e:
-    raise ValueError(f"--class-map {e}") from None
+  return flags.class_map(args)
 
 
 def _index_names(names) -> bool:
@@ -97,8 +86,9 @@ def _predictions(seq, args, class_map=None):
       yield (probs if class_map is None else np.asarray(remap(class_map, probs)[0])), None
 
 
-def _chunks(seq, predictions, size):
-  """Stacks of up to `size` frames: `(t0, Frame with a leading time axis)`."""
+def _chunks(seq, predictions, size, rgb: bool = False):
+  """Stacks of up to `size` frames: `(t0, Frame with a leading time axis)`; with `rgb`, the
+  colour images too (rules that read image context)."""
   buf = []
   for t, (probs, var) in enumerate(predictions):
     buf.append((t, probs, var))
@@ -107,15 +97,15 @@ def _chunks(seq, predictions, size):
       var_stack = None if buf[0][2] is None else np.stack([b[2] for b in buf])
       yield len(buf), jf.Frame(np.asarray(seq.depth[idx], np.float32),
                                np.asarray(seq.T_world_cam[idx], np.float32),
-                               np.stack([b[1] for b in buf]), var_stack)
+                               np.stack([b[1] for b in buf]), var_stack,
+                               np.asarray(seq.rgb[idx], np.uint8) if rgb else None)
       buf = []
 
 
-def _rule(args):
-  kwargs = {"aggregate": args.aggregate}
-  if args.rule.lower() in ("robust_r", "robust_d", "robust_dr", "r", "d", "d+r"):
-    kwargs["beta"] = args.beta
-  return jf.rules.by_name(args.rule, **kwargs)
+def _rule(args, num_classes=None):
+  """`--rule`: any rule the study has (`flags.resolve_rule`)."""
+  return flags.resolve_rule(args.rule, beta=args.beta, aggregate=args.aggregate,
+                            num_classes=num_classes)[1]
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -129,12 +119,15 @@ def run_command(args: argparse.Namespace) -> int:
     raise ValueError(f"--data: {e}") from None
   class_map = _class_map(args)
   seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height, width=args.width,
-                           layout_seed=flags.one_layout_seed(args), stride=args.stride)
+                           layout_seed=flags.one_layout_seed(args), stride=args.stride,
+                           label_space=args.label_space)
   mapper, num_classes = None, None
   with tqdm(total=len(seq), desc="fusing") as bar:
-    for count, frames in _chunks(seq, _predictions(seq, args, class_map), RUN_CHUNK):
+    for count, frames in _chunks(seq, _predictions(seq, args, class_map), RUN_CHUNK,
+                                 rgb=bool(rule.context)):
       if mapper is None:
         num_classes = frames.probs.shape[-1]
+        rule = _rule(args, num_classes)          # a fitted rule's K checked against the data
         mapper = jf.Mapper(rule, num_classes=num_classes, voxel_size=args.voxel_size,
                            capacity=args.capacity, geometry=flags.geometry_config(args))
       mapper.fuse_sequence(frames, seq.camera)
@@ -241,19 +234,12 @@ def add_parser(subparsers) -> None:
   run.add_argument("--data", required=True,
                    help="the sequence: ENV:TRAJECTORY (e.g. office:0), scannet:PATH, tum:PATH "
                         "or saved:PATH (also synthetic:ENV/TRAJECTORY)")
-  run.add_argument("--rule", default="robust_dr", help="sum_probs, sum_labels, bayes, R, D, D+R")
+  run.add_argument("--rule", default="robust_dr", help=flags.RULE_NAMES_HELP)
   flags.add_fusion(run)
   run.add_argument("--predictions", default=None,
                    help="folder of precomputed .npz predictions (one per frame) instead of the "
                         "shipped network")
-  run.add_argument("--class-map", default=None, metavar="FILE",
-                   help="remap the network's classes to the map's before fusion: a .json or "
-                        ".csv file (network class → map class; jaxfusion.classmap has the "
-                        "format) or a shipped map: " + ", ".join(datasets.classes.CLASS_MAPS))
-  run.add_argument("--unmapped", choices=("other", "drop"), default=None,
-                   help="with --class-map: classes with no target go to the 'other' class or "
-                        "are dropped and the rest renormalised (default: the file's choice, "
-                        "else 'other' when the map has an 'other' class)")
+  flags.add_label_space(run)
   flags.add_checkpoint(run)
   run.add_argument("--num-samples", type=int, default=32, help="MC dropout samples (1 = off)")
   run.add_argument("--frames", type=int, default=40,

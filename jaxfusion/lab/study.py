@@ -122,6 +122,9 @@ class StudyConfig:
     glfs_source: where `glfs` came from.
     variants: `((tag, params), …)`: more learned rules (e.g. an ablation by feature group),
       each a row "learned:<tag>" compared with Bayes and with the learned row.
+    data: the specs of a researcher's sequences (`--data`, strings); empty: the embedded grid
+      of `run`. With data, the sequences form one group ("data") instead of one per shift.
+    class_names: the map's classes (default the embedded world's).
   """
   run: config_lib.RunConfig = dataclasses.field(default_factory=_study_run)
   num_resamples: int = stats.DEFAULT_RESAMPLES
@@ -132,6 +135,8 @@ class StudyConfig:
   glfs: Optional[dict] = None
   glfs_source: Optional[str] = None
   variants: tuple = ()
+  data: tuple = ()
+  class_names: tuple = CLASS_NAMES
 
   @property
   def fitted(self) -> dict:
@@ -338,17 +343,11 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     confusions summed over all sequences, NaN for a class absent from GT and map), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
     `right_share` interval of right pixel observations), `num_sequences`.
   """
-  units = config.run.units
-  counts = stats.resample_counts(len(units), config.num_resamples, seed=config.bootstrap_seed)
-  kw = dict(counts=counts, confidence=config.confidence)
   methods = config.methods
   out = {}
-  for shift in config.run.shifts:
-    rows = {r["unit"]: r for r in per_sequence if r["shift"] == float(shift)}
-    missing = [u for u in units if tuple(u) not in rows]
-    if missing:
-      raise ValueError(f"no result for shift {shift} and units {missing}")
-    seq = [rows[tuple(u)] for u in units]
+  for group, seq in _groups(per_sequence, config):
+    counts = stats.resample_counts(len(seq), config.num_resamples, seed=config.bootstrap_seed)
+    kw = dict(counts=counts, confidence=config.confidence)
     cms = {m: np.stack([r["confusion"][m] for r in seq]) for m in methods}
     res = {"num_sequences": len(seq), "methods": {}, "differences": {}, "headroom": {},
            "recovered": {}, "oracle_share": {}, "class_iou": {}}
@@ -395,7 +394,26 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
           name: _iv(stats.bootstrap(np.stack([r["feature_hist"][name] for r in seq]),
                                     metrics.auroc_from_histograms, **kw))
           for name in seq[0]["feature_hist"]}
-    out[f"{float(shift):g}"] = res
+    out[group] = res
+  return out
+
+
+DATA_GROUP = "data"
+
+
+def _groups(per_sequence: list, config: StudyConfig) -> list:
+  """`[(group, results)]`: one group per shift of the embedded grid, each with its units in
+  the grid's order; with `config.data`, one group of all sequences in the order given."""
+  if config.data:
+    return [(DATA_GROUP, list(per_sequence))]
+  units = config.run.units
+  out = []
+  for shift in config.run.shifts:
+    rows = {r["unit"]: r for r in per_sequence if r["shift"] == float(shift)}
+    missing = [u for u in units if tuple(u) not in rows]
+    if missing:
+      raise ValueError(f"no result for shift {shift} and units {missing}")
+    out.append((f"{float(shift):g}", [rows[tuple(u)] for u in units]))
   return out
 
 
@@ -416,12 +434,17 @@ def _cell(iv: dict, scale: float = 100.0, signed: bool = False) -> str:
           f" [{scale * iv['low']:.1f}, {scale * iv['high']:.1f}]")
 
 
+def _group_title(group: str) -> str:
+  """A table column's title: "shift 0.5" for an embedded shift, the group's name otherwise."""
+  return f"shift {group}" if group != DATA_GROUP else "your data"
+
+
 def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
   """The study's Markdown: mIoU, accuracy, paired differences, headroom, front-end α."""
   shifts = list(summary)
   first = summary[shifts[0]]
   conf = f"{100 * config.confidence:g} %"
-  head = "| Method | " + " | ".join(f"shift {s}" for s in shifts) + " |"
+  head = "| Method | " + " | ".join(_group_title(s) for s in shifts) + " |"
   rule = "|---|" + "---|" * len(shifts)
   parts = [f"# Fusion study\n\n{note}\n\n"
            "How to read: intervals are percentile bootstrap intervals over sequences (resampled "
@@ -468,8 +491,10 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
   for s in dict.fromkeys([shifts[0], shifts[-1]]):
     ious = summary[s]["class_iou"]
     num_classes = len(next(iter(ious.values())))
-    names = CLASS_NAMES if len(CLASS_NAMES) == num_classes else [str(i) for i in range(num_classes)]
-    lines = [f"## Per-class IoU (%) at shift {s}, confusions summed over its sequences", "",
+    names = (config.class_names if len(config.class_names) == num_classes
+             else [str(i) for i in range(num_classes)])
+    lines = [f"## Per-class IoU (%) at {_group_title(s)}, confusions summed over its sequences",
+             "",
              "| Method | " + " | ".join(names) + " |", "|---|" + "---|" * num_classes]
     for m, iou in ious.items():
       lines.append(f"| {m} | " + " | ".join("–" if not np.isfinite(v) else f"{100 * v:.1f}"
@@ -497,7 +522,7 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
     names = list(first["feature_auroc"])
     lines = [f"## Per-pixel features: AUROC of right vs wrong observations ({conf} bootstrap "
              "intervals; below 0.5: lower on right observations)", "",
-             "| Feature | " + " | ".join(f"shift {s}" for s in shifts) + " |", rule]
+             "| Feature | " + " | ".join(_group_title(s) for s in shifts) + " |", rule]
     for name in names:
       cells = []
       for s in shifts:
@@ -544,13 +569,20 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
                   model_id: str, timing: dict) -> list:
   """Writes the tables (Markdown, CSV, JSON) and the four PNG figures; returns the paths."""
   os.makedirs(out_dir, exist_ok=True)
-  shifts = np.array([float(s) for s in config.run.shifts])
   run = config.run
-  note = (f"{len(run.units)} sequences per shift ({len(run.layout_seeds)} layout seed(s) × "
-          f"{len(run.envs)} environment(s) × {len(run.trajectories)} trajectory(ies)), "
-          f"{run.num_frames} frames at {run.height}×{run.width}, M = {run.num_samples}, "
-          f"β = {run.beta}, {run.voxel_size} m voxels, pixel aggregation: {run.aggregate}; "
-          f"layout seeds {list(run.layout_seeds)}; "
+  if config.data:
+    shifts = np.array([0.0])
+    note = (f"{len(per_sequence)} sequences of your data ({', '.join(config.data)}; "
+            f"{per_sequence[0].get('source', '')}), β = {run.beta}, {run.voxel_size} m voxels, "
+            f"pixel aggregation: {run.aggregate}; classes {', '.join(config.class_names)}; ")
+  else:
+    shifts = np.array([float(s) for s in config.run.shifts])
+    note = (f"{len(run.units)} sequences per shift ({len(run.layout_seeds)} layout seed(s) × "
+            f"{len(run.envs)} environment(s) × {len(run.trajectories)} trajectory(ies)), "
+            f"{run.num_frames} frames at {run.height}×{run.width}, M = {run.num_samples}, "
+            f"β = {run.beta}, {run.voxel_size} m voxels, pixel aggregation: {run.aggregate}; "
+            f"layout seeds {list(run.layout_seeds)}; ")
+  note += (
           f"{config.num_resamples} bootstrap resamples; front end `{model_id}`; "
           + (f"learned rule `{config.learned_source or 'given parameters'}`; "
              if config.learned is not None else "")
@@ -558,6 +590,10 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
              if config.glfs is not None else "")
           + "".join(f"variant {tag}; " for tag, _ in config.variants) +
           f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
+  if config.data:
+    note += "".join(f" {r['sequence']}: {r['frames']} frames" + (
+        f" ({r['skipped']} without a prediction, skipped)" if r.get("skipped") else "") + ";"
+        for r in per_sequence)
   table = format_tables(summary, config, note)
   paths = {n: os.path.join(out_dir, n) for n in (
       "study.md", "study.csv", "study.json", "miou_vs_shift.png", "differences_vs_shift.png",
@@ -575,6 +611,31 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
     return {n: tuple(np.array([summary[s][section][n][metric][k] for s in summary], float)
                      for k in ("estimate", "low", "high")) for n in names}
 
+  if config.data:      # one group: no curves over shifts
+    for name in ("miou_vs_shift.png", "differences_vs_shift.png"):
+      del paths[name]
+  else:
+    _shift_figures(paths, summary, shifts)
+  shares = np.array([[summary[s]["headroom"][c]["estimate"] for c in HEADROOM]
+                     for s in summary], float)
+  recovered = {m: np.array([summary[s]["recovered"][m]["share"]["estimate"] for s in summary],
+                           float) for m in summary[next(iter(summary))]["recovered"]}
+  figures.headroom_bars(paths["headroom.png"], shifts, np.nan_to_num(shares), HEADROOM,
+                        recovered)
+  groups = _groups(per_sequence, config)
+  hist = np.stack([np.sum([r["alpha_hist"] for r in rows], axis=0)
+                   for _, rows in groups])                                    # (groups, 2, nb)
+  figures.alpha_histograms(paths["alpha_hist.png"], shifts, ALPHA_EDGES, hist[:, 0], hist[:, 1])
+  return list(paths.values())
+
+
+def _shift_figures(paths: dict, summary: dict, shifts: np.ndarray) -> None:
+  """mIoU and paired differences against the shift, with their intervals."""
+  def curves(section, metric):
+    names = summary[next(iter(summary))][section]
+    return {n: tuple(np.array([summary[s][section][n][metric][k] for s in summary], float)
+                     for k in ("estimate", "low", "high")) for n in names}
+
   figures.bands_vs_shift(paths["miou_vs_shift.png"],
                          shifts, {"mIoU": curves("methods", "miou"),
                                   "accuracy": curves("methods", "accuracy")}, ylabel="%")
@@ -584,16 +645,6 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
                          {"mIoU difference": rule_diffs["miou"],
                           "accuracy difference": rule_diffs["accuracy"]},
                          ylabel="points", zero_line=True)
-  shares = np.array([[summary[s]["headroom"][c]["estimate"] for c in HEADROOM]
-                     for s in summary], float)
-  recovered = {m: np.array([summary[s]["recovered"][m]["share"]["estimate"] for s in summary],
-                           float) for m in summary[next(iter(summary))]["recovered"]}
-  figures.headroom_bars(paths["headroom.png"], shifts, np.nan_to_num(shares), HEADROOM,
-                        recovered)
-  hist = np.stack([np.sum([r["alpha_hist"] for r in per_sequence if r["shift"] == float(s)],
-                          axis=0) for s in config.run.shifts])                # (shifts, 2, nb)
-  figures.alpha_histograms(paths["alpha_hist.png"], shifts, ALPHA_EDGES, hist[:, 0], hist[:, 1])
-  return list(paths.values())
 
 
 # --- the whole study ---------------------------------------------------------------------------
@@ -656,6 +707,87 @@ def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = N
           "timing": timing, "sequences": per_sequence}
 
 
+def fitted_for(config: StudyConfig, num_classes: int) -> StudyConfig:
+  """The config without the fitted rows (learned, GLFS, variants) whose parameters are for
+  another number of classes than the data's, each left out with one printed line."""
+  changes, variants = {}, []
+  for key, family, params in ((LEARNED, "learned", config.learned),
+                              (GLFS, "glfs", config.glfs)):
+    if params is not None:
+      k = flags.fitted_num_classes(family, params)
+      if k is not None and k != num_classes:
+        print(f"note: {display(key)} is left out: its parameters are fitted for {k} classes, "
+              f"the data has {num_classes} (fit them with `jaxfusion learn-rule --data ...` "
+              f"and pass --{'learned-rule' if key == LEARNED else 'glfs'} PARAMS_JSON)")
+        changes[key] = None
+  for tag, params in config.variants:
+    k = flags.fitted_num_classes("learned", params)
+    if k is not None and k != num_classes:
+      print(f"note: variant {tag} is left out: fitted for {k} classes, the data has "
+            f"{num_classes}")
+    else:
+      variants.append((tag, params))
+  return dataclasses.replace(config, variants=tuple(variants), **changes)
+
+
+def run_study_data(config: StudyConfig, out_dir: str, specs, options, *,
+                   front_end=None, checkpoint: Optional[str] = None) -> dict:
+  """The study on a researcher's sequences (`--data`): one group of sequences, each with its
+  own predictions and GT (`lab.sequences.load`), every rule and the oracle, paired intervals.
+
+  Args:
+    config: rules, β, aggregation, fitted rows and statistics (its grid is not used).
+    out_dir: output folder.
+    specs: the sequences (`SequenceSpec`s, e.g. `datasets.sets.expand` of `--data`).
+    options: `lab.sequences.DataOptions` (sizes, stride, predictions, label space, class map).
+    front_end: a front end for sequences without precomputed predictions (default: the shipped
+      network, loaded only when needed).
+    checkpoint: its weights.
+
+  Returns:
+    As `run_study`.
+  """
+  from jaxfusion.lab import sequences   # pylint: disable=import-outside-toplevel
+  specs = list(specs)
+  if not specs:
+    raise ValueError("--data names no sequence")
+  start, start_cpu = time.perf_counter(), time.process_time()
+  os.makedirs(out_dir, exist_ok=True)
+  options = dataclasses.replace(options, voxel_size=config.run.voxel_size,
+                                cache_dir=options.cache_dir or os.path.join(out_dir, "cache"))
+  if options.predictions is None and front_end is None:
+    front_end = frontend.FrontEnd(checkpoint, class_names=None)
+  model_id = front_end.model_id if options.predictions is None else "precomputed"
+  per_sequence, classes = [], None
+  for spec in tqdm(specs, desc="study"):
+    t0, c0 = time.perf_counter(), time.process_time()
+    item = sequences.load(spec, options, front_end=front_end)
+    if classes is None:
+      classes = item.class_names
+      config = fitted_for(dataclasses.replace(
+          config, data=tuple(str(s) for s in specs), class_names=classes), len(classes))
+      config.validate()
+    elif item.class_names != classes:
+      raise ValueError(f"{item.name}: its classes {list(item.class_names)} are not the first "
+                       f"sequence's {list(classes)}; one study, one label space")
+    preds = item.predictions
+    if preds["var"] is None:
+      raise ValueError(f"{item.name}: the predictions hold no 'var' (or 'samples'); the robust "
+                       "rules and the study's α need the MC variance")
+    result = analyze_sequence(item.sequence, preds, item.gt, config)
+    result.update(unit=item.name, shift=DATA_GROUP, sequence=item.name, source=item.source,
+                  frames=len(item.sequence), skipped=item.skipped,
+                  seconds={"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0})
+    per_sequence.append(result)
+  summary = summarize(per_sequence, config)
+  timing = {"total_s": time.perf_counter() - start,
+            "total_cpu_s": time.process_time() - start_cpu}
+  files = write_outputs(out_dir, summary, per_sequence, config, model_id=model_id,
+                        timing=timing)
+  return {"summary": summary, "table": format_tables(summary, config), "files": files,
+          "timing": timing, "sequences": per_sequence, "config": config}
+
+
 # --- command line ------------------------------------------------------------------------------
 def add_parser(subparsers) -> argparse.ArgumentParser:
   """Adds `jaxfusion study`."""
@@ -669,6 +801,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   flags.add_study_run(p, seed_aliases=("--seeds",),
                       seeds_help=f" (default 1 2 3; the demo uses {DEMO_SEED})")
   flags.add_glfs_rule(p)
+  flags.add_data(p)
   p.add_argument("--variant", action="append", default=[], metavar="TAG=PARAMS_JSON",
                  help="another learned rule (a learn-rule params.json) as a row "
                       "'Learned (TAG)', compared with Bayes and the learned row; repeatable")
@@ -687,6 +820,18 @@ def main(args: argparse.Namespace) -> int:
       height=args.height, width=args.width, num_samples=args.num_samples, beta=args.beta,
       aggregate=args.aggregate, mc_seed=args.mc_seed, learned=learned, learned_source=source,
       glfs=glfs, glfs_source=glfs_source, variants=flags.learned_variants(args))
+  data = flags.data_sets(args, "data")["--data"]
+  if data is not None:
+    run = config.run
+    options = flags.data_options(args, num_frames=run.num_frames, height=run.height,
+                                 width=run.width, num_samples=run.num_samples,
+                                 mc_seed=run.mc_seed, layout_seed=run.layout_seeds[0],
+                                 shift=run.shifts[-1])
+    out = run_study_data(config, args.out, data, options, checkpoint=args.checkpoint)
+    print(out["table"])
+    print(f"wrote {len(out['files'])} files under {args.out}/ in "
+          f"{out['timing']['total_s']:.0f} s")
+    return 0
   out = run_study(config.validate(), args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
   print(out["table"])
   t = out["timing"]

@@ -1,0 +1,273 @@
+"""The sequences a research command runs on, each with its predictions and its ground truth.
+
+Every command that runs on a set of sequences (`study`, `mesh-study`, `sweep`, `tune-beta`,
+`learn-rule`) names them with `--data` (`jaxfusion.datasets.sets`), or by layout seeds of the
+embedded world. This module turns one spec into what the commands fuse (`load`):
+
+* the sequence (`datasets.load_spec`: a frame stride and limit, the GT read into the declared
+  label space);
+* its per-pixel predictions `det`, `mean`, `var` (`(T, H, W, K) float32`): precomputed files
+  from `--predictions ROOT/<sequence name>/`, or the front end (the shipped MC-dropout
+  network, cached; for an embedded sequence keyed by its layout seed and shift, as the study
+  always has), then the `--class-map`;
+* its GT voxel labels (`datasets.gt_voxel_labels`).
+
+Precomputed files are matched to frames by number when their names are numbers (`12.npz` or
+`000012.npz` is the sequence's frame 12: ScanNet's frame id, or the frame's index in a saved or
+embedded sequence); otherwise the i-th file is the i-th frame and the counts must agree. A
+frame with no prediction file is an error, or with `missing="skip"` is dropped from the
+sequence and counted. A file may hold `det` (a dropout-off pass, which the baseline rules then
+read) beside `mean`/`var` or `samples`; without it the baselines read `mean`.
+
+Shape legend: T frames, H×W pixels, K classes.
+"""
+
+import dataclasses
+import os
+from typing import NamedTuple, Optional
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxfusion import datasets
+from jaxfusion import io
+from jaxfusion import sources
+from jaxfusion.datasets import sets
+from jaxfusion.lab import frontend
+
+MISSING = ("error", "skip")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataOptions:
+  """How a command reads each sequence of its data.
+
+  Attributes:
+    num_frames: frames of an embedded sequence (None: 60).
+    max_frames: the most frames read from a folder, after the stride (None: all).
+    height: image rows of an embedded sequence.
+    width: image columns of an embedded sequence.
+    stride: keep every stride-th frame of a folder.
+    layout_seed: layout seed of an embedded spec that names none.
+    shift: domain shift of an embedded spec that names none.
+    predictions: ROOT of precomputed predictions (one folder per sequence), or None for the
+      front end.
+    missing: a frame without a prediction file: "error" or "skip" (dropped and counted).
+    label_space: the classes a ScanNet folder's GT is read into (None: "scannet12").
+    class_map: a `ClassMap` applied to the predictions, or None.
+    voxel_size: voxel edge of the GT voxels, metres.
+    num_samples: MC-dropout samples M of the front end.
+    mc_seed: seed of the MC-dropout keys.
+    cache_dir: the front end's cache folder.
+  """
+  num_frames: Optional[int] = None
+  max_frames: Optional[int] = None
+  height: int = 120
+  width: int = 160
+  stride: int = 1
+  layout_seed: int = 0
+  shift: float = 1.0
+  predictions: Optional[str] = None
+  missing: str = "error"
+  label_space: Optional[str] = None
+  class_map: object = None
+  voxel_size: float = 0.1
+  num_samples: int = 16
+  mc_seed: int = 0
+  cache_dir: Optional[str] = None
+
+  def validate(self) -> "DataOptions":
+    if self.missing not in MISSING:
+      raise ValueError(f"missing predictions must be one of {MISSING}; got {self.missing!r}")
+    if int(self.stride) < 1:
+      raise ValueError(f"--stride must be at least 1; got {self.stride}")
+    for value in (self.num_frames, self.max_frames):
+      if value is not None and int(value) < 1:
+        raise ValueError(f"--frames must be at least 1; got {value}")
+    if self.label_space is not None:
+      datasets.classes.label_space(self.label_space)
+    return self
+
+
+class Loaded(NamedTuple):
+  """One sequence ready to fuse and score.
+
+  Attributes:
+    spec: its spec, with an embedded one's layout seed and shift filled in.
+    name: its name in reports (`sets.sequence_name`).
+    sequence: the `RGBDSequence` (frames without predictions dropped).
+    predictions: `det`, `mean`, `var` (var None when the files hold none), `(T, H, W, K)`.
+    gt: GT voxel labels `coords (G, 3) int32`, `labels (G,) int32`, `hits (G,) int32`.
+    class_names: the map's classes (the GT's label space).
+    source: where the predictions came from, in words.
+    skipped: frames dropped for want of a prediction.
+  """
+  spec: object
+  name: str
+  sequence: object
+  predictions: dict
+  gt: dict
+  class_names: tuple
+  source: str
+  skipped: int = 0
+
+
+def _frame_ids(sequence) -> list:
+  ids = sequence.info.get("frame_ids")
+  return list(range(len(sequence))) if ids is None else [int(i) for i in ids]
+
+
+def _prediction_files(folder: str, sequence, missing: str) -> tuple:
+  """`(files per kept frame, kept frame indices)` of a folder of per-frame `.npz` files."""
+  source = sources.precomputed_source(folder)
+  stems = [os.path.splitext(os.path.basename(str(f)))[0] for f in source.files]
+  if all(s.isdigit() for s in stems):
+    by_id = {int(s): str(f) for s, f in zip(stems, source.files)}
+    ids = _frame_ids(sequence)
+    keep = [i for i, fid in enumerate(ids) if fid in by_id]
+    if len(keep) < len(ids):
+      absent = [ids[i] for i in range(len(ids)) if ids[i] not in by_id]
+      if missing == "error":
+        raise ValueError(f"--predictions {folder} has no file for {len(absent)} of the "
+                         f"{len(ids)} frames (first: frame {absent[0]}); pass "
+                         "--missing-predictions skip to drop such frames")
+    return [by_id[ids[i]] for i in keep], keep
+  if len(source.files) != len(sequence):
+    raise ValueError(f"--predictions {folder} has {len(source.files)} files but the sequence "
+                     f"has {len(sequence)} frames (name the files by frame number to match "
+                     "them to frames)")
+  return [str(f) for f in source.files], list(range(len(sequence)))
+
+
+def _read_frame(path: str, class_map) -> tuple:
+  """`(det or None, mean, var or None)` of one precomputed file, remapped by `class_map`."""
+  src = sources.PrecomputedSource((path,))
+  samples = src.read_samples(0)
+  contents = io.read_npz(path, what="precomputed prediction file")
+  det = None
+  if "det" in contents:
+    det = np.asarray(contents["det"], np.float32)
+  if samples is not None and class_map is not None:
+    mean, var = sources.mc_moments(class_map.remap_samples(samples))
+  else:
+    pred = src.predict(None, None, index=0)
+    mean, var = pred.probs, pred.var
+    if class_map is not None:
+      _check_k(class_map, mean.shape[-1], path)
+      mean, var = class_map.remap(mean, var)
+  if det is not None:
+    if det.shape[:2] != tuple(np.shape(mean)[:2]):
+      raise ValueError(f"{path}: 'det' {det.shape} must be (H, W, K) as 'mean'")
+    if class_map is not None:
+      _check_k(class_map, det.shape[-1], path)
+      det = class_map.remap(det)[0]
+  return (None if det is None else np.asarray(det, np.float32), np.asarray(mean, np.float32),
+          None if var is None else np.asarray(var, np.float32))
+
+
+def _check_k(class_map, k: int, path: str) -> None:
+  if k != class_map.num_source_classes:
+    raise ValueError(f"--class-map maps {class_map.num_source_classes} source classes but "
+                     f"{path} has {k}")
+
+
+def precomputed(folder: str, sequence, *, class_map=None, missing: str = "error") -> tuple:
+  """A sequence's precomputed predictions and the frames they cover.
+
+  Returns:
+    `(predictions, keep)`: `det`, `mean`, `var` stacked `(T', H, W, K)` over the kept frames
+    `keep` (indices into the sequence).
+  """
+  files, keep = _prediction_files(folder, sequence, missing)
+  if not files:
+    raise ValueError(f"--predictions {folder} covers none of the sequence's frames")
+  h, w = sequence.image_size
+  dets, means, variances = [], [], []
+  for path in tqdm(files, desc="predictions", leave=False):
+    det, mean, var = _read_frame(path, class_map)
+    if mean.shape[:2] != (h, w):
+      raise ValueError(f"{path}: the prediction is {mean.shape[0]}x{mean.shape[1]} pixels but "
+                       f"the sequence's depth is {h}x{w}")
+    dets.append(det)
+    means.append(mean)
+    variances.append(var)
+  if len({m.shape[-1] for m in means}) != 1:
+    raise ValueError(f"--predictions {folder}: the files disagree on the number of classes")
+  mean = np.stack(means)
+  var = None if any(v is None for v in variances) else np.stack(variances)
+  det = mean if any(d is None for d in dets) else np.stack(dets)
+  return {"det": det, "mean": mean, "var": var}, keep
+
+
+def _front_end_predictions(front_end, spec, sequence, options: DataOptions) -> dict:
+  seed = spec.layout_seed if spec.is_embedded else 0
+  shift = spec.shift if spec.is_embedded else 0.0
+  preds = frontend.cached_predictions(front_end, sequence, layout_seed=seed, shift=shift,
+                                      num_samples=options.num_samples, mc_seed=options.mc_seed,
+                                      cache_dir=options.cache_dir or "outputs/cache")
+  if options.class_map is not None:
+    cm = options.class_map
+    _check_k(cm, preds["mean"].shape[-1], f"the front end {front_end.model_id}")
+    mean, var = cm.remap(preds["mean"], preds["var"])
+    preds = {"det": np.asarray(cm.remap(preds["det"])[0]), "mean": np.asarray(mean),
+             "var": np.asarray(var)}
+  return preds
+
+
+def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Loaded:
+  """Loads one sequence with its predictions and GT voxel labels.
+
+  Args:
+    spec: a spec string or `SequenceSpec`.
+    options: how to read it.
+    front_end: a front end (`frontend.FrontEnd` or the same protocol) for sequences without
+      `options.predictions`.
+    gt: compute the GT voxel labels (the sequence must have GT labels).
+
+  Returns:
+    A `Loaded`.
+
+  Raises:
+    ValueError: no GT labels, predictions of another K than the GT's label space, a front end
+      missing where there are no predictions, …; one line each.
+  """
+  spec = datasets.parse_spec(spec) if isinstance(spec, str) else spec
+  spec = spec.resolved(layout_seed=options.layout_seed, shift=options.shift)
+  name = sets.sequence_name(spec)
+  frames = options.num_frames if spec.is_embedded else options.max_frames
+  sequence = datasets.load_spec(spec, num_frames=frames, height=options.height,
+                                width=options.width, stride=options.stride,
+                                label_space=options.label_space)
+  skipped = 0
+  if options.predictions is not None:
+    folder = sets.predictions_folder(options.predictions, spec)
+    preds, keep = precomputed(folder, sequence, class_map=options.class_map,
+                              missing=options.missing)
+    if len(keep) < len(sequence):
+      skipped = len(sequence) - len(keep)
+      tqdm.write(f"{name}: {skipped} of {len(sequence)} frames have no prediction in {folder}; "
+                 "skipped")
+      info = dict(sequence.info, frame_ids=[_frame_ids(sequence)[i] for i in keep],
+                  skipped_without_prediction=skipped)
+      sequence = dataclasses.replace(sequence.subset(keep), info=info)
+    source = f"precomputed predictions in {folder}"
+  else:
+    if front_end is None:
+      raise ValueError(f"{spec}: no --predictions and no front end to predict with")
+    preds = _front_end_predictions(front_end, spec, sequence, options)
+    source = f"network {front_end.model_id} (MC dropout, M={options.num_samples})"
+  k = int(preds["mean"].shape[-1])
+  class_names = tuple(sequence.class_names)
+  if class_names and len(class_names) != k:
+    raise ValueError(f"{name}: the predictions have {k} classes but the GT's label space has "
+                     f"{len(class_names)} ({', '.join(class_names)}); give --class-map, or "
+                     "--label-space for the predictions' classes")
+  voxels = None
+  if gt:
+    if sequence.labels is None:
+      raise ValueError(f"{spec} has no GT labels to score against (ScanNet: label-filt/; a "
+                       "saved sequence: labels)")
+    voxels = datasets.gt_voxel_labels(sequence, voxel_size=options.voxel_size)
+  return Loaded(spec=spec, name=name, sequence=sequence, predictions=preds, gt=voxels,
+                class_names=class_names or tuple(str(i) for i in range(k)), source=source,
+                skipped=skipped)
