@@ -21,6 +21,7 @@ from jaxfusion import learn
 from jaxfusion import rules
 from jaxfusion import tune
 from jaxfusion.lab import figures
+from jaxfusion.lab import flags
 from jaxfusion.lab import reports
 from jaxfusion.lab import tuning
 
@@ -100,7 +101,8 @@ def add_parser(subparsers) -> None:
   parser.add_argument("--quick", action="store_true",
                       help="smoke run: one env, one trajectory, one shift, 8 small frames, "
                            "6 steps")
-  tuning.add_data_args(parser, rule_help=argparse.SUPPRESS, layout_seeds=False)
+  tuning.add_data_args(parser, rule_help=argparse.SUPPRESS, layout_seeds=False,
+                       calibration=True, validation=True)
   parser.set_defaults(func=command, front_end="shipped")
 
 
@@ -144,25 +146,50 @@ def command_line(args) -> str:
   return " ".join(["jaxfusion learn-rule"] + parts)
 
 
+def _data_batches(args, given: dict) -> tuple:
+  """The training and validation batches of `--calibration-data` and `--validation-data` (a
+  researcher's sequences, or embedded specs of layouts no command judges on)."""
+  train, validation = given["--calibration-data"], given["--validation-data"]
+  if given["--data"] is not None:
+    raise ValueError("learn-rule fits on --calibration-data and selects on --validation-data; "
+                     "it judges nothing (judge the rule with `jaxfusion study --data ...`)")
+  if train is None or validation is None:
+    raise ValueError("learn-rule on your data needs both --calibration-data (to fit on) and "
+                     "--validation-data (to select on)")
+  judged = [str(s) for s in train + validation if s.is_embedded and (
+      0 if s.layout_seed is None else s.layout_seed) in JUDGED_SEEDS]
+  if judged:
+    raise ValueError(f"{judged[0]}: layout seeds {list(JUDGED_SEEDS)} are those the rules are "
+                     "judged on (demo, study, tuning protocol); fit on others")
+  options = tuning.data_options(args, layout_seed=args.train_seeds[0])
+  front_end = tuning.data_front_end(args)
+  return (tuning.load_data_batch(train, options, front_end=front_end),
+          tuning.load_data_batch(validation, options, front_end=front_end))
+
+
 def command(args) -> int:
   """Runs `jaxfusion learn-rule`; returns the exit status."""
   if args.quick:
     args.envs, args.trajectories, args.shifts = args.envs[:1], [0], args.shifts[-1:]
     args.frames, args.height, args.width, args.steps = 8, 30, 40, 6
     args.eval_every, args.patience = 2, 2
-  _check_seeds(args.train_seeds, args.validation_seeds)
   started = time.perf_counter()
-  front_end = tuning.front_end_of(args)
-  kwargs = tuning.data_kwargs(args, front_end)
+  given = flags.data_sets(args, "calibration_data", "validation_data", "data")
+  if any(v is not None for v in given.values()):
+    train, validation = _data_batches(args, given)
+  else:
+    _check_seeds(args.train_seeds, args.validation_seeds)
+    front_end = tuning.front_end_of(args)
+    kwargs = tuning.data_kwargs(args, front_end)
 
-  def load(seeds):
-    batches = []
-    for shift in args.shifts:
-      units = [(e, t, s) for s in seeds for e in args.envs for t in args.trajectories]
-      batches.append(tuning.load_sequence_batch(units, **{**kwargs, "shift": shift}))
-    return merge_batches(batches)
+    def load(seeds):
+      batches = []
+      for shift in args.shifts:
+        units = [(e, t, s) for s in seeds for e in args.envs for t in args.trajectories]
+        batches.append(tuning.load_sequence_batch(units, **{**kwargs, "shift": shift}))
+      return merge_batches(batches)
 
-  train, validation = load(args.train_seeds), load(args.validation_seeds)
+    train, validation = load(args.train_seeds), load(args.validation_seeds)
   loaded = time.perf_counter() - started
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
   bar = tqdm(total=args.steps, desc="learn-rule", unit="step")

@@ -214,14 +214,32 @@ def _front_end_predictions(front_end, spec, sequence, options: DataOptions) -> d
   return preds
 
 
+# `load(..., front_end=SIMULATED)`: the simulated noisy network drawn from the GT labels.
+SIMULATED = "simulated"
+
+
+def _simulated(spec, name: str, sequence, options: DataOptions) -> dict:
+  """The simulated network's moments (`frontend.simulated_predictions`), drawn from the GT
+  labels; an embedded sequence keeps its own stream (environment, trajectory), a folder's is
+  keyed by its name."""
+  if sequence.labels is None:
+    raise ValueError(f"{spec}: the simulated front end draws from GT labels, and it has none")
+  env, trajectory = (spec.env, spec.trajectory) if spec.is_embedded else (name, 0)
+  preds = frontend.simulated_predictions(sequence.labels, env=env, trajectory=trajectory,
+                                         num_classes=len(sequence.class_names),
+                                         num_samples=options.num_samples,
+                                         mc_seed=options.mc_seed)
+  return {"det": preds["mean"], "mean": preds["mean"], "var": preds["var"]}
+
+
 def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Loaded:
   """Loads one sequence with its predictions and GT voxel labels.
 
   Args:
     spec: a spec string or `SequenceSpec`.
     options: how to read it.
-    front_end: a front end (`frontend.FrontEnd` or the same protocol) for sequences without
-      `options.predictions`.
+    front_end: a front end (`frontend.FrontEnd` or the same protocol), or `SIMULATED`, for
+      sequences without `options.predictions`.
     gt: compute the GT voxel labels (the sequence must have GT labels).
 
   Returns:
@@ -251,6 +269,9 @@ def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Load
                   skipped_without_prediction=skipped)
       sequence = dataclasses.replace(sequence.subset(keep), info=info)
     source = f"precomputed predictions in {folder}"
+  elif front_end == SIMULATED:
+    preds = _simulated(spec, name, sequence, options)
+    source = f"simulated network (M={options.num_samples})"
   else:
     if front_end is None:
       raise ValueError(f"{spec}: no --predictions and no front end to predict with")

@@ -107,6 +107,57 @@ def load_calibration_sequence(spec: str, *, num_frames: int, height: int, width:
           "capacity": state_lib.capacity_for(len(gt["labels"]))}
 
 
+def load_data_sequence(spec, options, *, front_end=None) -> dict:
+  """A sequence of `--data` (any spec: a folder of your data or an embedded one) with GT voxel
+  labels and predictions (`lab.sequences.load`), as `load_calibration_sequence` returns it.
+
+  Args:
+    spec: a spec string or `SequenceSpec`.
+    options: `lab.sequences.DataOptions`.
+    front_end: a network front end, `sequences.SIMULATED`, or None with `options.predictions`.
+  """
+  from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
+  item = sequences.load(spec, options, front_end=front_end)
+  seq, preds = item.sequence, item.predictions
+  frames = fusion.Frame(np.asarray(seq.depth, np.float32), np.asarray(seq.T_world_cam, np.float32),
+                        np.asarray(preds["mean"], np.float32),
+                        None if preds["var"] is None else np.asarray(preds["var"], np.float32),
+                        np.asarray(seq.rgb, np.uint8))
+  return {"name": item.name, "frames": frames, "camera": seq.camera, "gt": item.gt,
+          "num_classes": int(preds["mean"].shape[-1]), "source": item.source,
+          "class_names": item.class_names,
+          "capacity": state_lib.capacity_for(len(item.gt["labels"]))}
+
+
+def batch_of(datas: Sequence[dict]) -> dict:
+  """B loaded sequences (`load_calibration_sequence` / `load_data_sequence` outputs) as one
+  padded batch, for `tune_hparams`, `sweep` and `evaluate_rules`."""
+  if not datas:
+    raise ValueError("a batch needs at least one sequence")
+  cameras = {tuple(float(c) for c in d["camera"]) for d in datas}
+  if len(cameras) != 1:
+    raise ValueError(f"the sequences of a batch must share one camera; got {sorted(cameras)}")
+  sizes = {tuple(np.shape(d["frames"].depth)[1:]) for d in datas}
+  if len(sizes) != 1:
+    raise ValueError(f"the sequences of a batch must share one image size; got {sorted(sizes)}")
+  ks = {d["num_classes"] for d in datas}
+  if len(ks) != 1:
+    raise ValueError(f"the sequences of a batch must share one label space; got K = {sorted(ks)}")
+  frames, mask = batch.stack_sequences([d["frames"] for d in datas])
+  coords, labels = pad_ground_truth([d["gt"] for d in datas])
+  return {"names": [d["name"] for d in datas], "frames": frames, "mask": mask,
+          "camera": datas[0]["camera"], "coords": coords, "labels": labels,
+          "capacity": max(d["capacity"] for d in datas), "num_classes": datas[0]["num_classes"],
+          "source": datas[0]["source"]}
+
+
+def load_data_batch(specs, options, *, front_end=None) -> dict:
+  """`batch_of` the `load_data_sequence` of each spec."""
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  return batch_of([load_data_sequence(s, options, front_end=front_end)
+                   for s in tqdm(list(specs), desc="sequences", leave=False)])
+
+
 def load_sequence_batch(units: Sequence[tuple], **kwargs) -> dict:
   """B sequences as one padded batch, for `tune_hparams`, `sweep` and `evaluate_rules`.
 
@@ -121,17 +172,8 @@ def load_sequence_batch(units: Sequence[tuple], **kwargs) -> dict:
   from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
   if not units:
     raise ValueError("load_sequence_batch needs at least one (env, trajectory, seed) unit")
-  datas = [load_calibration_sequence(f"{env}:{traj}", seed=int(seed), **kwargs)
-           for env, traj, seed in tqdm(units, desc="sequences", leave=False)]
-  cameras = {tuple(float(c) for c in d["camera"]) for d in datas}
-  if len(cameras) != 1:
-    raise ValueError(f"the sequences of a batch must share one camera; got {sorted(cameras)}")
-  frames, mask = batch.stack_sequences([d["frames"] for d in datas])
-  coords, labels = pad_ground_truth([d["gt"] for d in datas])
-  return {"names": [d["name"] for d in datas], "frames": frames, "mask": mask,
-          "camera": datas[0]["camera"], "coords": coords, "labels": labels,
-          "capacity": max(d["capacity"] for d in datas), "num_classes": datas[0]["num_classes"],
-          "source": datas[0]["source"]}
+  return batch_of([load_calibration_sequence(f"{env}:{traj}", seed=int(seed), **kwargs)
+                   for env, traj, seed in tqdm(units, desc="sequences", leave=False)])
 
 
 # --- do the surrogates' optima track the mIoU's? -----------------------------------------------
@@ -357,7 +399,8 @@ def format_protocol(result: dict, class_names: Sequence[str]) -> str:
 
 # --- command line --------------------------------------------------------------------------------
 def add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust rule: R, D "
-                   "or D+R", layout_seeds: bool = True) -> None:
+                   "or D+R", layout_seeds: bool = True, calibration: bool = False,
+                  validation: bool = False) -> None:
   flags.add_sizes(parser, frames=20, height=60, width=80, samples=False)
   parser.add_argument("--voxel-size", type=float, default=0.1, help="voxel edge in metres")
   parser.add_argument("--rule", default="D+R", help=rule_help)
@@ -371,9 +414,7 @@ def add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust r
   parser.add_argument("--checkpoint", default=None,
                       help="weights for --front-end shipped (default: the packaged ones)")
   flags.add_cache(parser, default=DEFAULT_CACHE_DIR, aliases=("--cache-dir",))
-  parser.add_argument("--predictions", default=None,
-                      help="folder of precomputed predictions, one sub-folder per sequence "
-                           "(instead of a front end)")
+  flags.add_data(parser, calibration=calibration, validation=validation)
   parser.add_argument("--num-samples", type=int, default=8, help="MC samples M")
   parser.add_argument("--shift", type=float, default=1.0, help="test-domain shift in [0, 1]")
   if layout_seeds:
@@ -383,6 +424,24 @@ def add_data_args(parser: argparse.ArgumentParser, *, rule_help: str = "robust r
   parser.add_argument("--devices", type=int, default=None,
                       help="shard the sweep over this many devices (default: one)")
   parser.add_argument("--json", default=None, help="write the results as JSON here")
+
+
+def data_front_end(args):
+  """The front end of `--data` sequences without --predictions: `sequences.SIMULATED`, the
+  shipped network (--front-end shipped), or None with --predictions."""
+  from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
+  if args.predictions is not None:
+    return None
+  if args.front_end == "simulated":
+    return sequences.SIMULATED
+  return frontend.FrontEnd(args.checkpoint, class_names=None)
+
+
+def data_options(args, **defaults):
+  """`flags.data_options` with the tuning commands' sizes, shift and seeds."""
+  seeds = getattr(args, "layout_seeds", None)
+  return flags.data_options(args, **{"layout_seed": seeds[0] if seeds else 0,
+                                     "shift": args.shift, **defaults})
 
 
 def front_end_of(args):
@@ -464,7 +523,7 @@ def add_tune_beta_parser(subparsers) -> argparse.ArgumentParser:
                       help="surrogate to minimise")
   parser.add_argument("--per-class", action="store_true",
                       help="fit one value per class for each tuned hyperparameter")
-  add_data_args(parser)
+  add_data_args(parser, calibration=True)
   parser.set_defaults(func=tune_beta_command)
   return parser
 
@@ -519,8 +578,14 @@ def add_tune_protocol_parser(subparsers) -> argparse.ArgumentParser:
 
 def sweep_command(args) -> int:
   """Runs `jaxfusion sweep`; returns the exit status."""
-  data = load_calibration_sequence(args.sequence, seed=flags.one_layout_seed(args),
-                                   **data_kwargs(args, front_end_of(args)))
+  specs = flags.data_sets(args, "data")["--data"]
+  if specs is not None:
+    if len(specs) != 1:
+      raise ValueError(f"sweep fuses one sequence: give one --data spec; got {len(specs)}")
+    data = load_data_sequence(specs[0], data_options(args), front_end=data_front_end(args))
+  else:
+    data = load_calibration_sequence(args.sequence, seed=flags.one_layout_seed(args),
+                                     **data_kwargs(args, front_end_of(args)))
   betas = np.linspace(args.beta_min, args.beta_max, args.num_betas)
   start = time.perf_counter()
   out = sweep_beta(data["frames"], data["camera"], data["gt"]["coords"], data["gt"]["labels"],
@@ -557,15 +622,32 @@ def _fmt(value) -> str:
 def tune_beta_command(args) -> int:
   """Runs `jaxfusion tune-beta`; returns the exit status."""
   train = tuple(t.strip() for t in args.tune.split(",") if t.strip())
-  kwargs = data_kwargs(args, front_end_of(args))
-  cal = load_calibration_sequence(args.calibration, seed=flags.one_layout_seed(args), **kwargs)
+  given = flags.data_sets(args, "calibration_data", "data")
+  if given["--calibration-data"] is not None or given["--data"] is not None:
+    if given["--calibration-data"] is None:
+      raise ValueError("tune-beta --data (the held-out sequences) needs --calibration-data "
+                       "(the sequences to fit β on)")
+    options, front_end = data_options(args), data_front_end(args)
+    cal = batch_of([load_data_sequence(s, options, front_end=front_end)
+                    for s in given["--calibration-data"]])
+    cal.update(name=", ".join(cal["names"]), gt={"coords": cal["coords"],
+                                                  "labels": cal["labels"]})
+    held_specs = given["--data"] or []
+    load_held = lambda spec: load_data_sequence(spec, options, front_end=front_end)
+  else:
+    kwargs = data_kwargs(args, front_end_of(args))
+    cal = load_calibration_sequence(args.calibration, seed=flags.one_layout_seed(args),
+                                    **kwargs)
+    held_specs = [s.strip() for s in args.held_out.split(",") if s.strip()]
+    load_held = lambda spec: load_calibration_sequence(spec, seed=flags.one_layout_seed(args),
+                                                       **kwargs)
   start = time.perf_counter()
   result = tune_hparams(cal["frames"], cal["camera"], cal["gt"]["coords"],
                         cal["gt"]["labels"], rule=args.rule, init={"beta": args.init_beta},
                         train=train, steps=args.steps, learning_rate=args.learning_rate,
                         capacity=cal["capacity"], voxel_size=args.voxel_size,
                         aggregate=args.aggregate, objective=args.objective,
-                        per_class=args.per_class)
+                        per_class=args.per_class, mask=cal.get("mask"))
   seconds = time.perf_counter() - start
   print(f"calibration {cal['name']} ({cal['source']}), rule {args.rule}, "
         f"aggregate={args.aggregate}, objective {args.objective}: {args.steps} Adam steps in "
@@ -574,8 +656,8 @@ def tune_beta_command(args) -> int:
         + ", ".join(f"{k} = {_fmt(result.hparams[k])}" for k in train))
   baseline = rules_lib.by_name(args.rule, beta=args.baseline_beta, aggregate=args.aggregate)
   held_out = []
-  for spec in [s.strip() for s in args.held_out.split(",") if s.strip()]:
-    data = load_calibration_sequence(spec, seed=flags.one_layout_seed(args), **kwargs)
+  for spec in held_specs:
+    data = load_held(spec)
     base_out, tuned_out = evaluate_rules(
         [baseline, result.rule], data["frames"], data["camera"], data["gt"]["coords"],
         data["gt"]["labels"], capacity=data["capacity"], voxel_size=args.voxel_size,
