@@ -98,3 +98,63 @@ def sequence_surface(env: str, layout_seed: int, shift: float, sequence, *,
   return seen_surface(world, sequence.T_world_cam, sequence.camera, sequence.image_size,
                       T_world_room=synthetic.placement(env, layout_seed), spacing=spacing,
                       upsample=upsample)
+
+
+MESH_SUFFIX = "_vh_clean_2.labels.ply"
+
+
+def labelled_mesh_path(folder: str):
+  """The labelled GT mesh of a ScanNet scene folder (`<scene>_vh_clean_2.labels.ply`, or any
+  `*_vh_clean_2.labels.ply` in it), or None."""
+  import glob  # pylint: disable=import-outside-toplevel
+  import os  # pylint: disable=import-outside-toplevel
+  own = os.path.join(folder, os.path.basename(os.path.normpath(folder)) + MESH_SUFFIX)
+  if os.path.isfile(own):
+    return own
+  found = sorted(glob.glob(os.path.join(folder, "*" + MESH_SUFFIX)))
+  return found[0] if found else None
+
+
+def seen_points(points: np.ndarray, sequence, *, tolerance: float = 0.05) -> np.ndarray:
+  """`(G,) bool`: which world points some frame of the sequence sees, i.e. projects inside the
+  image in front of the camera within `tolerance` metres of the measured depth there (a
+  point behind the measured surface is occluded; one with no depth is not seen)."""
+  points = np.asarray(points, np.float64)
+  seen = np.zeros(len(points), bool)
+  cam = sequence.camera
+  h, w = sequence.image_size
+  for depth, T in zip(sequence.depth, sequence.T_world_cam):
+    T = np.asarray(T, np.float64)
+    p = (points - T[:3, 3]) @ T[:3, :3]                    # world → camera: R^T (p − t)
+    z = p[:, 2]
+    front = z > 1e-6
+    u = np.full(len(p), -1, np.int64)
+    v = np.full(len(p), -1, np.int64)
+    u[front] = np.round(cam.fx * p[front, 0] / z[front] + cam.cx).astype(np.int64)
+    v[front] = np.round(cam.fy * p[front, 1] / z[front] + cam.cy).astype(np.int64)
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(p))
+    d[inside] = depth[v[inside], u[inside]]
+    seen |= inside & (d > 0) & (np.abs(d - z) <= tolerance)
+  return seen
+
+
+def mesh_surface(path: str, sequence, *, label_space: str = "scannet12",
+                 spacing: float = DEFAULT_SPACING, tolerance: float = 0.05) -> dict:
+  """The true surface of a real sequence from its labelled GT mesh (ScanNet's
+  `*_vh_clean_2.labels.ply`, vertex `label` = NYU40 id): even samples of the mesh
+  (`ground_truth.surface_from_mesh`, classes of `label_space`) that the sequence's frames see
+  (`seen_points`), as `seen_surface` keeps only what the cameras see.
+
+  Returns:
+    dict with `points (G, 3) float64` and `labels (G,) int32`.
+  """
+  from jaxfusion.datasets import classes  # pylint: disable=import-outside-toplevel
+  from jaxfusion.datasets import ground_truth  # pylint: disable=import-outside-toplevel
+  from jaxfusion.datasets import plyfile  # pylint: disable=import-outside-toplevel
+  mesh = plyfile.read_labelled_mesh(path)
+  _, lut = classes.label_space(label_space)
+  surface = ground_truth.surface_from_mesh(mesh["vertices"], mesh["faces"], mesh["labels"],
+                                           lut=lut, spacing=spacing)
+  keep = seen_points(surface["points"], sequence, tolerance=tolerance)
+  return {"points": surface["points"][keep], "labels": surface["labels"][keep]}

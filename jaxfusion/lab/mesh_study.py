@@ -122,7 +122,7 @@ def geometry_scores(mesh, surface: dict, *, seed: int = 0) -> dict:
 
 
 def evaluate_sequence(sequence, predictions: dict, gt_voxels: dict, surface: dict,
-                      config: MeshStudyConfig) -> dict:
+                      config: MeshStudyConfig, *, ignore_label: Optional[int] = None) -> dict:
   """One sequence: the shared geometry's scores, and per rule the voxel confusion `(K, K)`
   (counts) and the mesh's padded area confusion `(K + 1, K + 1)` (m²;
   `surface_metrics.padded_confusion`), and the meshes (for the figure)."""
@@ -141,7 +141,8 @@ def evaluate_sequence(sequence, predictions: dict, gt_voxels: dict, surface: dic
     mesh = jf.label_mesh(surface_mesh, state)
     s = surface_metrics.mesh_semantic_scores(mesh.vertices, mesh.faces, mesh.labels,
                                              surface["points"], surface["labels"],
-                                             num_classes=k, nearest=nearest)
+                                             num_classes=k, nearest=nearest,
+                                             ignore_label=ignore_label)
     mesh_cm[name] = surface_metrics.padded_confusion(s["confusion"], s["unlabelled"])
     meshes[name] = mesh
   first = next(iter(meshes.values()))
@@ -331,6 +332,90 @@ def run_mesh_study(config: MeshStudyConfig, out_dir: str, *, cache_dir: Optional
           "timing": {"total_s": time.perf_counter() - start}}
 
 
+def true_surface(item, config: MeshStudyConfig, label_space: Optional[str] = None) -> dict:
+  """A loaded sequence's true surface: the embedded world's primitives where its cameras see
+  them, or a ScanNet folder's labelled GT mesh (`surfaces.mesh_surface`)."""
+  spec = item.spec
+  if spec.is_embedded:
+    return surfaces.sequence_surface(spec.env, spec.layout_seed, spec.shift, item.sequence,
+                                     domain=spec.domain, spacing=config.surface_spacing,
+                                     upsample=config.upsample)
+  path = surfaces.labelled_mesh_path(spec.path) if os.path.isdir(spec.path) else None
+  if path is None:
+    raise ValueError(f"{spec}: no labelled GT mesh (*{surfaces.MESH_SUFFIX}) to score meshes "
+                     "against; the mesh study needs one per sequence")
+  return surfaces.mesh_surface(path, item.sequence, label_space=label_space or "scannet12",
+                               spacing=config.surface_spacing)
+
+
+def run_mesh_study_data(config: MeshStudyConfig, out_dir: str, specs, options, *,
+                        front_end=None, checkpoint: Optional[str] = None) -> dict:
+  """The mesh study on a researcher's sequences (`--data`): each sequence's predictions and GT
+  (`lab.sequences.load`), its true surface (`true_surface`), every rule's mesh against it.
+
+  Returns:
+    dict with `summary`, `table`, `files`, `sequences` and `timing`.
+  """
+  from jaxfusion.lab import sequences   # pylint: disable=import-outside-toplevel
+  start = time.perf_counter()
+  os.makedirs(out_dir, exist_ok=True)
+  options = dataclasses.replace(options, voxel_size=config.run.voxel_size,
+                                cache_dir=options.cache_dir or os.path.join(out_dir, "cache"))
+  if options.predictions is None and front_end is None:
+    front_end = frontend.FrontEnd(checkpoint, class_names=None)
+  per_sequence, names, files, classes = [], [], [], None
+  for spec in tqdm(list(specs), desc="sequences"):
+    item = sequences.load(spec, options, front_end=front_end)
+    if classes is None:
+      classes = item.class_names
+      k = flags.fitted_num_classes("learned", config.learned or {})
+      if config.learned is not None and k is not None and k != len(classes):
+        print(f"note: the learned rule is left out: fitted for {k} classes, the data has "
+              f"{len(classes)}")
+        config = dataclasses.replace(config, learned=None)
+      config.validate()
+    elif item.class_names != classes:
+      raise ValueError(f"{item.name}: its classes are not the first sequence's; one study, one "
+                       "label space")
+    if item.predictions["var"] is None:
+      raise ValueError(f"{item.name}: the predictions hold no 'var'; the robust rules need it")
+    surface = true_surface(item, config, options.label_space)
+    result = evaluate_sequence(item.sequence, item.predictions, item.gt, surface, config,
+                               ignore_label=datasets.IGNORE_LABEL)
+    if not per_sequence:
+      path = os.path.join(out_dir, f"mesh_{item.name}.png")
+      _figure_meshes(path, result["meshes"], surface, datasets.palette(classes), config)
+      files.append(path)
+    del result["meshes"]
+    per_sequence.append(result)
+    names.append({"sequence": item.name, "spec": str(item.spec), "source": item.source,
+                  "geometry": result["geometry"]})
+  summary = summarize(per_sequence, config)
+  table = format_tables(summary, config)
+  path = os.path.join(out_dir, "mesh_study.png")
+  _figure_bars(path, summary)
+  files.append(path)
+  record = {"config": {"data": [str(s) for s in specs], "run": dataclasses.asdict(config.run),
+                       "geometry": dataclasses.asdict(config.geometry),
+                       "learned_source": config.learned_source,
+                       "surface_spacing": config.surface_spacing,
+                       "num_resamples": config.num_resamples, "confidence": config.confidence},
+            "classes": list(classes), "summary": summary, "sequences": names}
+  path = os.path.join(out_dir, "mesh_study.json")
+  with open(path, "w", encoding="utf-8") as f:
+    json.dump(record, f, indent=1, default=float)
+  files.append(path)
+  path = os.path.join(out_dir, "mesh_study.md")
+  with open(path, "w", encoding="utf-8") as f:
+    f.write(f"# Mesh study\n\n{len(per_sequence)} sequences of your data "
+            f"({', '.join(str(s) for s in specs)}); geometry layer "
+            f"{config.geometry.voxel_size:g} m, τ = {config.geometry.truncation_voxels:g} "
+            f"voxels.\n\n{table}\n")
+  files.append(path)
+  return {"summary": summary, "table": table, "files": files, "sequences": names,
+          "timing": {"total_s": time.perf_counter() - start}}
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
   """Adds `jaxfusion mesh-study`."""
   p = subparsers.add_parser(
@@ -340,6 +425,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                  help="1 seed × office × 1 trajectory × shifts 0 and 1, 12 frames at 60×80")
   p.add_argument("--out", default="outputs/mesh_study", help="output folder")
   flags.add_study_run(p, seeds_help=" (default the study's: 1 2 3)")
+  flags.add_data(p)
   p.set_defaults(func=main)
   return p
 
@@ -355,7 +441,16 @@ def main(args: argparse.Namespace) -> int:
       height=args.height, width=args.width, num_samples=args.num_samples, beta=args.beta,
       aggregate=args.aggregate, mc_seed=args.mc_seed, learned=learned, learned_source=source,
       num_resamples=args.resamples)
-  out = run_mesh_study(config, args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
+  data = flags.data_sets(args, "data")["--data"]
+  if data is not None:
+    run = config.run
+    options = flags.data_options(args, num_frames=run.num_frames, height=run.height,
+                                 width=run.width, num_samples=run.num_samples,
+                                 mc_seed=run.mc_seed, layout_seed=run.layout_seeds[0],
+                                 shift=run.shifts[-1])
+    out = run_mesh_study_data(config, args.out, data, options, checkpoint=args.checkpoint)
+  else:
+    out = run_mesh_study(config, args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
   print(out["table"])
   print(f"wrote {len(out['files'])} files under {args.out}/ in "
         f"{out['timing']['total_s']:.0f} s")
