@@ -158,13 +158,29 @@ def atomic_write(path: str, write) -> None:
 
 
 def rule_metadata(rule: rules_lib.FusionRule) -> dict:
-  """JSON-able description of a rule: its name, aggregation and hyperparameter values."""
-  return {"name": rule.name, "aggregate": rule.aggregate,
-          "hparams": {k: float(v) for k, v in rule.hparams.items()}}
+  """JSON-able description of a rule: its name, aggregation, hyperparameter values (scalars
+  as numbers, per-class values and tables as nested lists) and, for a rule that reads per-pixel
+  context (the learned rule, GLFS), the context's names."""
+  def plain(v):
+    a = np.asarray(v, np.float64)
+    return float(a) if a.ndim == 0 else a.tolist()
+  meta = {"name": rule.name, "aggregate": rule.aggregate,
+          "hparams": {k: plain(v) for k, v in rule.hparams.items()}}
+  if rule.context:
+    meta["context"] = list(rule.context)
+  return meta
 
 
 def rule_from_metadata(meta: dict) -> rules_lib.FusionRule:
-  return rules_lib.by_name(meta["name"], aggregate=meta["aggregate"], **meta["hparams"])
+  """The rule `rule_metadata` describes: a paper rule, the learned rule or GLFS."""
+  hparams = {k: (np.asarray(v, np.float32) if isinstance(v, list) else v)
+             for k, v in meta["hparams"].items()}
+  if meta["name"] == "learned":
+    return rules_lib.learned(hparams, context=tuple(meta.get("context", ())),
+                             aggregate=meta["aggregate"])
+  if meta["name"] == "glfs":
+    return rules_lib.glfs(**hparams, aggregate=meta["aggregate"])
+  return rules_lib.by_name(meta["name"], aggregate=meta["aggregate"], **hparams)
 
 
 def _check_trajectory(poses, camera, image_size):

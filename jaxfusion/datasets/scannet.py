@@ -195,7 +195,7 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
           raw = np.where(raw < len(raw_to_nyu), raw_to_nyu[np.minimum(raw, len(raw_to_nyu) - 1)],
                          0)
         raw = cv2.resize(raw.astype(np.int32), (size[1], size[0]),
-                         interpolation=cv2.INTER_NEAREST)
+                         interpolation=cv2.INTER_NEAREST_EXACT)
         lab = nyu40_to_classes(raw, lut)
     except (files.BadFileError, FileNotFoundError) as e:
       if not skip_bad:

@@ -14,6 +14,10 @@ Missing or corrupt image files raise an error naming the file, or are skipped an
 TUM folders carry no intrinsics: the default is the ROS default camera the benchmark recommends
 (`fx = fy = 525, cx = 319.5, cy = 239.5` for 640×480, scaled to other image sizes); pass
 `camera=` for the calibrated values of a specific sensor (freiburg1/2/3).
+
+jaxfusion's own addition to the layout: an optional `calibration.txt` holding one line
+`fx fy cx cy` (pixels, of the depth image) gives the camera when `camera=` is not passed.
+`export.save_tum` writes it, since the camera it exports is not TUM's default.
 """
 
 import os
@@ -26,6 +30,24 @@ from jaxfusion.datasets.sequence import RGBDSequence
 
 DEPTH_SCALE = 5000.0
 DEFAULT_CAMERA = Camera(525.0, 525.0, 319.5, 239.5)  # for 640×480
+CALIBRATION_FILE = "calibration.txt"  # jaxfusion's addition: "fx fy cx cy"
+
+
+def read_calibration(path: str) -> Camera:
+  """The camera of a `calibration.txt`: one line `fx fy cx cy` in pixels.
+
+  Raises:
+    FileNotFoundError: the file is missing.
+    BadFileError: it does not hold four numbers that make a pinhole camera.
+  """
+  m = files.read_matrix(path)
+  if m.shape != (1, 4):
+    raise files.BadFileError(f"expected one line 'fx fy cx cy' in {path}; got a {m.shape[0]}x"
+                             f"{m.shape[1]} table")
+  try:
+    return Camera(*(float(x) for x in m[0]))
+  except ValueError as e:
+    raise files.BadFileError(f"not a pinhole camera in {path}: {e}") from e
 
 
 def read_list(path: str, num_fields: int) -> list:
@@ -87,7 +109,8 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
 
   Args:
     path: the folder with `rgb.txt`, `depth.txt`, `groundtruth.txt`.
-    camera: intrinsics; default `DEFAULT_CAMERA` scaled to the image size.
+    camera: intrinsics; default: those of the folder's `calibration.txt` when it has one,
+      else `DEFAULT_CAMERA` scaled to the image size.
     stride: keep every `stride`-th associated frame.
     max_frames: keep at most this many frames after striding.
     max_time_diff: association tolerance in seconds.
@@ -101,6 +124,9 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
   if stride < 1:
     raise ValueError(f"stride must be ≥ 1; got {stride}")
   path = os.path.abspath(path)
+  calibration = os.path.join(path, CALIBRATION_FILE)
+  if camera is None and os.path.isfile(calibration):
+    camera = read_calibration(calibration)
   rgb_rows = read_list(os.path.join(path, "rgb.txt"), 2)
   depth_rows = read_list(os.path.join(path, "depth.txt"), 2)
   gt_path = os.path.join(path, "groundtruth.txt")

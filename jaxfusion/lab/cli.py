@@ -5,6 +5,8 @@
   run             fuse one sequence of your data with one rule (`lab.maps`)
   eval            score a saved map against GT voxel labels (`lab.maps`)
   export          export a saved map as a class-coloured PLY (`lab.maps`)
+  gt              GT voxel labels of one sequence, from label images or a labelled mesh
+                  (`lab.ground_truth`)
   list            list the embedded sequences (`lab.data`)
   render          render an embedded frame as RGB | depth | labels PNG (`lab.data`)
   save            render an embedded sequence to a folder (`lab.data`)
@@ -32,8 +34,8 @@ import importlib
 import sys
 
 # The modules that register commands, in the order of `jaxfusion --help`.
-COMMAND_MODULES = ("demo", "maps", "data", "viewer.command", "study", "mesh_study", "tuning",
-                   "simulate", "learning", "predict")
+COMMAND_MODULES = ("demo", "maps", "ground_truth", "data", "viewer.command", "study",
+                   "mesh_study", "tuning", "simulate", "learning", "predict")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,20 +6,28 @@ Examples:
   jaxfusion bench --height 120 --width 160
   jaxfusion render --env office --trajectory 0 --frame 0 --out frame.png
   jaxfusion save --env house --trajectory 2 --out seqs/house_2
+  jaxfusion save --format scannet --num-frames 30 --out scans/scene0000_00
+  jaxfusion save --format tum --num-frames 30 --out tum/embedded_office
   jaxfusion show --path seqs/house_2 --frame 3 --out frame.png
 """
 
 import argparse
+import os
 import sys
 import time
 
 import numpy as np
 
-from jaxfusion.datasets import camera_model, preview, synthetic
+from jaxfusion.datasets import camera_model, export, preview, synthetic
 from jaxfusion.datasets.classes import palette
 from jaxfusion.datasets.camera_model import SensingConfig
 from jaxfusion.datasets.sequence import RGBDSequence
 from jaxfusion.lab import flags
+
+
+SAVE_FORMATS = ("saved", "scannet", "tum")
+# The rendered image size of `save` by format when --height/--width are not given.
+SAVE_SIZES = {"saved": (240, 320), "scannet": (480, 640), "tum": (240, 320)}
 
 
 def _add_synthetic_args(p: argparse.ArgumentParser) -> None:
@@ -72,10 +80,21 @@ def add_parser(subparsers) -> None:
   render.add_argument("--out", default="frame.png")
   render.set_defaults(func=main)
   save = subparsers.add_parser("save", help="render a whole embedded sequence and save it to a "
-                                            "folder")
+                                            "folder (jaxfusion's, ScanNet's or TUM's layout)")
   _add_synthetic_args(save)
   save.add_argument("--out", required=True)
-  save.set_defaults(func=main)
+  save.add_argument("--format", choices=SAVE_FORMATS, default="saved",
+                    help="saved: jaxfusion's own folder (bit-exact); scannet: a SensReader "
+                         "export with NYU40 label images and the labelled GT mesh; tum: the TUM "
+                         "RGB-D layout (default: saved)")
+  save.add_argument("--color-size", type=int, nargs=2, metavar=("H", "W"), default=None,
+                    help="colour and label image size for --format scannet (default "
+                         f"{export.SCANNET_COLOR_SIZE[0]} {export.SCANNET_COLOR_SIZE[1]})")
+  save.add_argument("--overwrite", action="store_true",
+                    help="with --format scannet | tum: write into a non-empty folder that is "
+                         "not such an export")
+  # --height/--width default by format: 480x640 (ScanNet's depth) for scannet, else 240x320.
+  save.set_defaults(func=main, height=None, width=None)
   show = subparsers.add_parser("show", help="preview a frame of a saved sequence folder")
   show.add_argument("--path", required=True)
   show.add_argument("--frame", type=int, default=0)
@@ -142,12 +161,46 @@ def main(args: argparse.Namespace) -> int:
     print(f"wrote {args.out} ({args.env} trajectory {args.trajectory} frame {args.frame}, "
           f"{args.domain} domain, {args.width}x{args.height})")
     return 0
+  return _save(args, seed, sensing)
+
+
+def _save(args: argparse.Namespace, seed: int, sensing: SensingConfig) -> int:
+  """`save`: renders the sequence and writes it in the chosen layout."""
+  fmt = args.format
+  if args.color_size is not None and fmt != "scannet":
+    raise ValueError("--color-size is for --format scannet")
+  if args.overwrite and fmt == "saved":
+    raise ValueError("--overwrite is for --format scannet | tum (a saved folder is rewritten "
+                     "in place)")
+  if fmt != "saved":   # refuse a bad target before rendering
+    export.check_target(args.out, fmt, overwrite=args.overwrite)
+  height = SAVE_SIZES[fmt][0] if args.height is None else args.height
+  width = SAVE_SIZES[fmt][1] if args.width is None else args.width
   seq = synthetic.make_sequence(args.env, args.trajectory, domain=args.domain,
-                                num_frames=args.num_frames, height=args.height, width=args.width,
+                                num_frames=args.num_frames, height=height, width=width,
                                 seed=seed, shift=args.shift, realism=not args.no_realism,
                                 sensing=sensing)
-  seq.save(args.out)
-  print(f"saved {seq!r} to {args.out}")
+  if fmt == "saved":
+    seq.save(args.out)
+    print(f"saved {seq!r} to {args.out}")
+  elif fmt == "scannet":
+    color_size = export.SCANNET_COLOR_SIZE if args.color_size is None else args.color_size
+    mesh = export.embedded_labelled_mesh(args.env, seed, args.shift, domain=args.domain)
+    export.save_scannet(seq, args.out, color_size=color_size, labelled_mesh=mesh,
+                        overwrite=args.overwrite)
+    name = os.path.basename(os.path.abspath(args.out)) + export.LABELS_PLY_SUFFIX
+    print(f"wrote {seq!r} to {args.out} in ScanNet's layout: {len(seq)} frames, colour "
+          f"{color_size[1]}x{color_size[0]}, depth {width}x{height}, NYU40 labels, mesh {name} "
+          f"({len(mesh['vertices'])} vertices); read it with --data scannet:{args.out} "
+          "--label-space embedded")
+  else:
+    export.save_tum(seq, args.out, overwrite=args.overwrite)
+    c = seq.camera
+    print(f"wrote {seq!r} to {args.out} in TUM RGB-D's layout: {len(seq)} frames at "
+          f"{width}x{height}, no labels")
+    print(f"camera: fx={c.fx!r} fy={c.fy!r} cx={c.cx!r} cy={c.cy!r} (in its calibration.txt, "
+          f"which load_tum reads; elsewhere pass camera=Camera({c.fx!r}, {c.fy!r}, {c.cx!r}, "
+          f"{c.cy!r}))")
   return 0
 
 
