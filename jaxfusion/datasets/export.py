@@ -224,9 +224,9 @@ def save_scannet(sequence: RGBDSequence, path: str, *, color_size=SCANNET_COLOR_
   extrinsics the identity (colour and depth come from the same camera).
 
   Read it back with `load_scannet(path, label_space="embedded")` for an embedded sequence.
-  Its depth comes back rounded to the millimetre; its labels exactly where `color_size` is an
-  integer multiple of the depth size (elsewhere the reader's `cv2.INTER_NEAREST`, which
-  samples at pixel corners, picks a neighbouring colour pixel near label edges).
+  Its depth comes back rounded to the millimetre; its labels exactly at ScanNet's sizes (the
+  reader resizes them back by pixel centre, `cv2.INTER_NEAREST_EXACT`); at a tiny size with a
+  ratio near an integer, a pixel next to a label edge may take its neighbour's label.
 
   Args:
     sequence: the frames (`rgb (T, H, W, 3) uint8`, `depth (T, H, W) float32` metres,

@@ -136,6 +136,7 @@ def test_study_refuses_a_set_that_names_nothing(tmp_path, capsys):
   assert code == 2 and "no folder matches" in err
 
 
+@pytest.mark.slow
 def test_fitted_rows_of_another_label_space_are_left_out(scannet_set, tmp_path, capsys):
   seq = datasets.load_spec(f"scannet:{scannet_set}/scene0021_00")
   _predictions(str(tmp_path / "preds" / "scene0021_00"), seq, k=12)
@@ -148,6 +149,7 @@ def test_fitted_rows_of_another_label_space_are_left_out(scannet_set, tmp_path, 
   assert "GLFS" not in summary["data"]["methods"]
 
 
+@pytest.mark.slow
 def test_sweep_and_tune_beta_on_a_scannet_set(scannet_set, capsys):
   a, b = (f"scannet:{scannet_set}/scene00{s}_00" for s in (21, 22))
   common = ["--predictions", str(scannet_set / "preds"), "--label-space", "embedded"]

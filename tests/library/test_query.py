@@ -377,13 +377,14 @@ def _python_block(text, heading):
   return text[start:text.index("```", start)]
 
 
-def test_the_readme_information_gain_example_runs_on_the_quick_start_map(tmp_path,
+def test_the_information_gain_example_runs_on_the_readme_quick_start_map(tmp_path,
                                                                            monkeypatch):
   monkeypatch.chdir(tmp_path)   # the quick start writes its mesh to the working folder
   text = (ROOT / "README.md").read_text(encoding="utf-8")
+  queries = (ROOT / "docs" / "your_data.md").read_text(encoding="utf-8")
   scope = {}
   exec(_python_block(text, "## Quick start"), scope)     # pylint: disable=exec-used
-  exec(_python_block(text, "**Queries.**"), scope)       # pylint: disable=exec-used
+  exec(_python_block(queries, "## Queries"), scope)      # pylint: disable=exec-used
   assert (tmp_path / "wall.ply").stat().st_size > 0
   state, gain = scope["state"], scope["gain"]
   q = jf.query(state, scope["p_world"])
