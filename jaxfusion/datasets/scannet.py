@@ -90,6 +90,34 @@ def nyu40_to_classes(nyu40: np.ndarray, lut: np.ndarray = NYU40_TO_SCANNET12) ->
   return np.where(ok, lut[np.where(ok, nyu40, 0)], IGNORE_LABEL).astype(np.int32)
 
 
+def frame_ids(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool = False) -> list:
+  """The frame ids `load_scannet` would read, from the file names alone (no image is read):
+  ids with every file present (without `skip_bad`, a missing one is an error), every
+  `stride`-th, at most `max_frames` (frames whose pose turns out invalid are skipped on
+  reading, so a chunked read may hold fewer)."""
+  if stride < 1:
+    raise ValueError(f"stride must be ≥ 1; got {stride}")
+  path = os.path.abspath(path)
+  for sub in ("color", "depth", "pose"):
+    if not os.path.isdir(os.path.join(path, sub)):
+      raise FileNotFoundError(f"not a ScanNet export: folder {os.path.join(path, sub)} is missing")
+  sources = {sub: _ids(os.path.join(path, sub), _EXT[sub]) for sub in ("color", "depth", "pose")}
+  label_dir = os.path.join(path, "label-filt")
+  if os.path.isdir(label_dir):
+    sources["label-filt"] = _ids(label_dir, _EXT["label-filt"])
+  ids = []
+  for i in sorted(set().union(*[set(s) for s in sources.values()])):
+    missing = [sub for sub, s in sources.items() if i not in s]
+    if not missing:
+      ids.append(i)
+    elif not skip_bad:
+      raise FileNotFoundError(f"mismatched ScanNet files: missing "
+                              f"{os.path.join(path, missing[0], f'{i}{_EXT[missing[0]]}')} "
+                              "(pass skip_bad=True to skip such frames)")
+  ids = ids[::stride]
+  return ids if max_frames is None else ids[:max_frames]
+
+
 def _check_aspect(path: str, shape, depth_shape) -> None:
   """Refuses a colour or label image whose aspect ratio is not the depth image's (within 5%):
   resized to the depth size, another picture would otherwise pass as this frame's."""
@@ -101,7 +129,7 @@ def _check_aspect(path: str, shape, depth_shape) -> None:
 
 def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool = False,
                  label_tsv=None, depth_scale: float = DEPTH_SCALE, name=None,
-                 label_space: str = "scannet12") -> RGBDSequence:
+                 label_space: str = "scannet12", frame_ids=None) -> RGBDSequence:
   """Loads an exported ScanNet scene as an `RGBDSequence`.
 
   Args:
@@ -116,6 +144,8 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
     name: sequence name (default: the folder name).
     label_space: the classes the NYU40 GT labels are read into (`classes.LABEL_SPACES`:
       "scannet12", the paper's, by default; "scannet20", "nyu40", "embedded").
+    frame_ids: read only these frame ids (e.g. a chunk of `frame_ids(path, stride=...)`; the
+      stride is then not applied again).
 
   Returns:
     `RGBDSequence` with the depth intrinsics, colour resized to the depth resolution, and
@@ -157,7 +187,11 @@ def load_scannet(path: str, *, stride: int = 1, max_frames=None, skip_bad: bool 
       counts = ", ".join(f"{sub}: {len(s)}" for sub, s in sources.items())
       raise FileNotFoundError(f"mismatched ScanNet files ({counts}); missing {missing[0]} "
                               "(pass skip_bad=True to skip such frames)")
-  ids = ids[::stride]
+  if frame_ids is None:
+    ids = ids[::stride]
+  else:
+    wanted = {int(i) for i in frame_ids}
+    ids = [i for i in ids if i in wanted]
   rgbs, depths, poses, labs, kept = [], [], [], [], []
   size = None
   for i in ids:

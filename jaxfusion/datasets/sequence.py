@@ -187,11 +187,12 @@ class RGBDSequence:
     return path
 
   @classmethod
-  def load(cls, path: str) -> "RGBDSequence":
-    """Reads a folder written by `save`.
+  def load(cls, path: str, frames=None) -> "RGBDSequence":
+    """Reads a folder written by `save` (all of it, or some of its frames).
 
     Args:
       path: the folder.
+      frames: the frame indices to read (default all): a long sequence can be read in chunks.
 
     Returns:
       The sequence, bit-identical to the one saved.
@@ -223,7 +224,11 @@ class RGBDSequence:
       expected["instances"] = ((h, w), np.int32)
     keys = list(expected)
     data = {k: [] for k in keys}
-    for i in range(num_frames):
+    indices = range(num_frames) if frames is None else [int(i) for i in frames]
+    bad = [i for i in indices if not 0 <= i < num_frames]
+    if bad:
+      raise IndexError(f"frame {bad[0]} out of range: {meta_path} lists {num_frames} frames")
+    for i in indices:
       frame_path = os.path.join(path, "frames", f"{i:06d}.npz")
       if not os.path.isfile(frame_path):
         raise FileNotFoundError(f"{frame_path} is missing ({meta_path} lists {num_frames} frames)")
@@ -231,7 +236,7 @@ class RGBDSequence:
       for k, (shape, dtype) in expected.items():
         io.check_array(frame_path, "frame file of a saved sequence", k, z[k], shape, dtype)
         data[k].append(z[k])
-    if num_frames == 0:
+    if not indices:
       empty = {"rgb": np.zeros((0, h, w, 3), np.uint8), "depth": np.zeros((0, h, w), np.float32),
                "T_world_cam": np.zeros((0, 4, 4), np.float32),
                "labels": np.zeros((0, h, w), np.int32), "instances": np.zeros((0, h, w), np.int32)}

@@ -102,31 +102,15 @@ def _nearest(stamps: np.ndarray, t: float):
   return i, abs(stamps[i] - t)
 
 
-def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
-             max_time_diff: float = 0.02, skip_bad: bool = False,
-             depth_scale: float = DEPTH_SCALE, name=None) -> RGBDSequence:
-  """Loads a TUM RGB-D sequence folder as an `RGBDSequence` (no labels).
-
-  Args:
-    path: the folder with `rgb.txt`, `depth.txt`, `groundtruth.txt`.
-    camera: intrinsics; default: those of the folder's `calibration.txt` when it has one,
-      else `DEFAULT_CAMERA` scaled to the image size.
-    stride: keep every `stride`-th associated frame.
-    max_frames: keep at most this many frames after striding.
-    max_time_diff: association tolerance in seconds.
-    skip_bad: skip frames with missing/corrupt images or poses instead of raising.
-    depth_scale: depth PNG units per metre (5000 for TUM).
-    name: sequence name (default: the folder name).
+def associate(path: str, *, max_time_diff: float = 0.02) -> tuple:
+  """The association of a TUM folder's lists by time (no image is read).
 
   Returns:
-    `RGBDSequence` with `labels=None`; `info` lists the timestamps and the skipped frames.
+    `(matched, skipped)`: `[(timestamp, depth file, rgb file, groundtruth row)]` in time order
+    for every depth image with an RGB image and a pose within `max_time_diff` seconds, and the
+    depth images without (`{"timestamp", "file", "reason"}`).
   """
-  if stride < 1:
-    raise ValueError(f"stride must be ≥ 1; got {stride}")
   path = os.path.abspath(path)
-  calibration = os.path.join(path, CALIBRATION_FILE)
-  if camera is None and os.path.isfile(calibration):
-    camera = read_calibration(calibration)
   rgb_rows = read_list(os.path.join(path, "rgb.txt"), 2)
   depth_rows = read_list(os.path.join(path, "depth.txt"), 2)
   gt_path = os.path.join(path, "groundtruth.txt")
@@ -151,10 +135,44 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
       skipped.append({"timestamp": t, "file": depth_file, "reason": "no ground-truth pose in time"})
     else:
       matched.append((t, depth_file, rgb_rows[i][1], gt_rows[j]))
-  matched = matched[::stride]
+  return matched, skipped
+
+
+def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
+             max_time_diff: float = 0.02, skip_bad: bool = False,
+             depth_scale: float = DEPTH_SCALE, name=None, first: int = 0) -> RGBDSequence:
+  """Loads a TUM RGB-D sequence folder as an `RGBDSequence` (no labels).
+
+  Args:
+    path: the folder with `rgb.txt`, `depth.txt`, `groundtruth.txt`.
+    camera: intrinsics; default: those of the folder's `calibration.txt` when it has one,
+      else `DEFAULT_CAMERA` scaled to the image size.
+    stride: keep every `stride`-th associated frame.
+    max_frames: keep at most this many frames after striding.
+    first: skip this many associated frames after striding (with `max_frames`, a chunk of a
+      long sequence).
+    max_time_diff: association tolerance in seconds.
+    skip_bad: skip frames with missing/corrupt images or poses instead of raising.
+    depth_scale: depth PNG units per metre (5000 for TUM).
+    name: sequence name (default: the folder name).
+
+  Returns:
+    `RGBDSequence` with `labels=None`; `info` lists the timestamps and the skipped frames.
+  """
+  if stride < 1:
+    raise ValueError(f"stride must be ≥ 1; got {stride}")
+  path = os.path.abspath(path)
+  calibration = os.path.join(path, CALIBRATION_FILE)
+  if camera is None and os.path.isfile(calibration):
+    camera = read_calibration(calibration)
+  gt_path = os.path.join(path, "groundtruth.txt")
+  matched, skipped = associate(path, max_time_diff=max_time_diff)
+  positions = list(range(len(matched)))[::stride][int(first):]
+  matched = matched[::stride][int(first):]
+  kept_ids = []
   rgbs, depths, poses, stamps = [], [], [], []
   size = None
-  for t, depth_file, rgb_file, gt in matched:
+  for position, (t, depth_file, rgb_file, gt) in zip(positions, matched):
     if max_frames is not None and len(stamps) >= max_frames:
       break
     current, listing = os.path.join(path, depth_file), "depth.txt"
@@ -183,6 +201,7 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
     depths.append(d)
     poses.append(quat_to_pose(values[:3], values[3:]).astype(np.float32))
     stamps.append(t)
+    kept_ids.append(position)
   files.warn_skipped(f"load_tum({path})", skipped)
   if not stamps:
     raise ValueError(f"no valid frames in TUM folder {path}")
@@ -193,5 +212,6 @@ def load_tum(path: str, *, camera=None, stride: int = 1, max_frames=None,
   return RGBDSequence(
       name=name or os.path.basename(path), class_names=(), camera=camera, rgb=np.stack(rgbs),
       depth=np.stack(depths), T_world_cam=np.stack(poses),
-      info={"source": "tum", "path": path, "timestamps": stamps, "stride": stride,
+      info={"source": "tum", "path": path, "timestamps": stamps, "frame_ids": kept_ids,
+            "stride": stride,
             "skipped": skipped, "num_skipped": len(skipped)})
