@@ -116,6 +116,19 @@ def classify_voxels(gt_labels, gt_index, pred, num_classes: int) -> np.ndarray:
   keep = gt_index >= 0
   votes = np.bincount(gt_index[keep] * num_classes + pred[keep],
                       minlength=g * num_classes).reshape(g, num_classes)
+  return classify_votes(y, votes)
+
+
+def classify_votes(gt_labels, votes) -> np.ndarray:
+  """`classify_voxels` from the votes themselves: `votes (G, K) int`, the observations of each
+  GT voxel per class (summed over the chunks of a long sequence).
+
+  Returns:
+    `(G,) int8`: 0 mostly right, 1 outvoted right, 2 never right, −1 not observed.
+  """
+  y = np.asarray(gt_labels, np.int64).reshape(-1)
+  votes = np.asarray(votes, np.int64)
+  g, num_classes = votes.shape
   rows = np.arange(g)
   right = votes[rows, y]
   others = votes.copy()

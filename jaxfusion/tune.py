@@ -251,6 +251,90 @@ def sweep(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_labels,
   return _summarise(out)
 
 
+# --- a sweep of a long sequence, chunk by chunk -------------------------------------------------
+@functools.partial(jax.jit, static_argnames=("capacity", "num_classes", "voxel_size",
+                                             "max_probes"))
+def _sweep_first(frames, mask, camera, rules, *, capacity, num_classes, voxel_size, max_probes):
+  return jax.vmap(lambda r: batch.fuse_masked(
+      frames, mask, camera, r, capacity=capacity, num_classes=num_classes,
+      voxel_size=voxel_size, max_probes=max_probes))(rules)
+
+
+@functools.partial(jax.jit, donate_argnums=0)
+def _sweep_more(states, frames, mask, camera, rules):
+  depth = jnp.where(mask[:, None, None], jnp.asarray(frames.depth, jnp.float32), 0.0)
+  frames = frames._replace(depth=depth)
+  return jax.vmap(lambda s, r: fusion.fuse_sequence_unchecked(s, frames, camera, r))(states,
+                                                                                       rules)
+
+
+@jax.jit
+def _sweep_scores(states, coords, labels):
+  def one(state):
+    out = _score(state, coords, labels)
+    out["occupied"] = state.num_occupied
+    out["dropped"] = state.num_dropped
+    return out
+  return jax.vmap(one)(states)
+
+
+def _padded_chunk(frames: fusion.Frame, size: int) -> tuple:
+  """A chunk padded to `size` frames of zero depth (which touch nothing), and its mask."""
+  t = int(np.shape(frames.depth)[0])
+  if t > size:
+    raise ValueError(f"a chunk of {t} frames is longer than the first one ({size})")
+  pad = lambda x: None if x is None else np.concatenate(
+      [np.asarray(x), np.zeros((size - t,) + np.shape(x)[1:], np.asarray(x).dtype)])
+  frames = fusion.Frame(*(pad(getattr(frames, f)) for f in frames._fields))
+  if t < size:   # padded poses must still be rigid transforms
+    poses = np.asarray(frames.T_world_cam).copy()
+    poses[t:] = np.eye(4, dtype=poses.dtype)
+    frames = frames._replace(T_world_cam=poses)
+  return frames, np.arange(size) < t
+
+
+def sweep_chunks(chunks, camera: camera_lib.Camera, gt_coords, gt_labels,
+                 rules: rules_lib.FusionRule, *, capacity: int, voxel_size: float = 0.1,
+                 max_probes: int = state_lib.DEFAULT_MAX_PROBES) -> dict:
+  """`sweep` of one sequence given chunk by chunk: a long sequence in bounded memory.
+
+  The R maps are carried from chunk to chunk (each chunk one compiled call, padded to the
+  first chunk's length with frames of zero depth, which touch nothing), then scored as
+  `sweep` scores them: the results equal `sweep` of the whole sequence.
+
+  Args:
+    chunks: an iterable of Frames with a leading time axis (`depth (t, H, W)`, …), in order.
+    camera: the intrinsics.
+    gt_coords: `(N, 3)` GT voxel coordinates.
+    gt_labels: `(N,)` GT labels (−1: not scored).
+    rules: R stacked rules (`rules.stack`, `batch.rule_grid`).
+    capacity: slots C of every map.
+    voxel_size: voxel edge in metres.
+    max_probes: hash probe bound.
+
+  Returns:
+    As `sweep` for one sequence: leading `(R,)`.
+  """
+  num_rules = batch.num_stacked_rules(rules)
+  states, size, num_classes = None, None, None
+  for frames in chunks:
+    if states is None:
+      size = int(np.shape(frames.depth)[0])
+      num_classes = int(np.shape(frames.probs)[-1])
+      batch.check_batch_frames(frames, None, rules, batch_dims=1, num_classes=num_classes)
+      frames, mask = _padded_chunk(frames, size)
+      states = _sweep_first(jax.tree.map(np.asarray, frames), mask, camera, rules,
+                            capacity=capacity, num_classes=num_classes,
+                            voxel_size=float(voxel_size), max_probes=max_probes)
+    else:
+      frames, mask = _padded_chunk(frames, size)
+      states = _sweep_more(states, jax.tree.map(np.asarray, frames), mask, camera, rules)
+  if states is None:
+    raise ValueError("sweep_chunks got no frames")
+  out = _sweep_scores(states, np.asarray(gt_coords, np.int32), np.asarray(gt_labels, np.int32))
+  return _summarise(jax.tree.map(lambda x: np.asarray(x)[:num_rules], out))
+
+
 def _summarise(out: dict) -> dict:
   cms = out["confusion"]
   flat = cms.reshape((-1,) + cms.shape[-2:])

@@ -292,3 +292,186 @@ def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Load
   return Loaded(spec=spec, name=name, sequence=sequence, predictions=preds, gt=voxels,
                 class_names=class_names or tuple(str(i) for i in range(k)), source=source,
                 skipped=skipped)
+
+
+# --- streaming: a long sequence chunk by chunk -------------------------------------------------
+# Bytes of predictions (det, mean, var) one chunk may hold when the chunk size is automatic.
+CHUNK_BYTES = 256 * 2**20
+
+
+def chunk_frames(image_size, num_classes: int, budget: int = CHUNK_BYTES) -> int:
+  """Frames per chunk whose predictions (`det`, `mean`, `var`, float32) fit `budget` bytes
+  (1 to 16)."""
+  per_frame = 3 * 4 * int(image_size[0]) * int(image_size[1]) * int(num_classes)
+  return int(max(1, min(16, budget // max(per_frame, 1))))
+
+
+class Streamed:
+  """One sequence of `--data` read from disk a chunk at a time, with its predictions and GT.
+
+  `gt()` makes the GT voxel labels in a first pass over the frames (`ground_truth.
+  gt_from_frames`, into a map that grows); `chunks()` yields `(frames, predictions)` pairs of
+  at most `chunk` frames; frames without a prediction file are dropped in both passes (or
+  are an error: `options.missing`). Neither pass holds more than one chunk. Predictions come
+  from precomputed files, or from a network front end frame by frame (MC keys
+  `fold_in(PRNGKey(mc_seed), t)` of the frame's index t, as `frontend.FrontEnd.predict`); an
+  embedded sequence, which is small, is loaded whole (`load`).
+
+  Attributes:
+    spec, name, class_names, camera, image_size: the sequence's.
+    skipped: frames dropped for want of a prediction (known after a pass).
+    frames: frames yielded by the last pass.
+  """
+
+  def __init__(self, spec, options: DataOptions, *, front_end=None, chunk=None):
+    from jaxfusion.datasets import stream  # pylint: disable=import-outside-toplevel
+    spec = datasets.parse_spec(spec) if isinstance(spec, str) else spec
+    self.spec = spec.resolved(layout_seed=options.layout_seed, shift=options.shift)
+    self.name = sets.sequence_name(self.spec)
+    self.options, self.front_end, self._chunk = options, front_end, chunk
+    self._loaded = None
+    if self.spec.is_embedded:
+      self._loaded = load(self.spec, options, front_end=front_end, gt=False)
+      first = self._loaded.sequence
+    else:
+      self.stream = stream.open_stream(self.spec, num_frames=options.max_frames,
+                                       stride=options.stride, label_space=options.label_space)
+      first = self.stream.first()
+    self.class_names = tuple(first.class_names)
+    self.camera, self.image_size = first.camera, first.image_size
+    self.skipped, self.frames = 0, 0
+    self._folder = None
+    if self._loaded is None:
+      if options.predictions is not None:
+        self._folder = sets.predictions_folder(options.predictions, self.spec)
+        self._files = _numbered_files(self._folder)
+        self.source = f"precomputed predictions in {self._folder}"
+      elif front_end is None or front_end == SIMULATED:
+        raise ValueError(f"{self.spec}: streaming needs --predictions or a network front end")
+      else:
+        self.source = f"network {front_end.model_id} (MC dropout, M={options.num_samples})"
+    else:
+      self.source = self._loaded.source
+
+  def _raw_chunks(self, size: int):
+    if self._loaded is not None:
+      seq = self._loaded.sequence
+      for lo in range(0, len(seq), size):
+        idx = list(range(lo, min(len(seq), lo + size)))
+        yield seq.subset(idx), {k: None if v is None else v[idx]
+                                for k, v in self._loaded.predictions.items()}, idx
+      return
+    offset = 0
+    for chunk in self.stream.chunks(size):
+      yield chunk, None, list(range(offset, offset + len(chunk)))
+      offset += len(chunk)
+
+  def _keep(self, chunk) -> list:
+    """Indices of a chunk's frames that have a prediction file (the rest: error or skip)."""
+    if self._folder is None:
+      return list(range(len(chunk)))
+    ids = chunk.info.get("frame_ids") or []
+    keep = [i for i, fid in enumerate(ids) if int(fid) in self._files]
+    if len(keep) < len(chunk) and self.options.missing == "error":
+      absent = next(fid for fid in ids if int(fid) not in self._files)
+      raise ValueError(f"--predictions {self._folder} has no file for frame {absent}; pass "
+                       "--missing-predictions skip to drop such frames")
+    return keep
+
+  def _size(self) -> int:
+    if self._chunk is not None:
+      return int(self._chunk)
+    k = len(self.class_names) or 1
+    return chunk_frames(self.image_size, k)
+
+  def gt(self) -> dict:
+    """GT voxel labels of the frames that have predictions (a pass over the frames)."""
+    from jaxfusion.datasets import ground_truth  # pylint: disable=import-outside-toplevel
+    if not self.class_names:
+      raise ValueError(f"{self.spec} has no GT labels to score against")
+
+    def labelled():
+      for chunk, _, _ in self._raw_chunks(self._size()):
+        if chunk.labels is None:
+          raise ValueError(f"{self.spec} has no GT labels to score against (ScanNet: "
+                           "label-filt/; a saved sequence: labels)")
+        keep = self._keep(chunk)
+        if keep:
+          yield chunk if len(keep) == len(chunk) else chunk.subset(keep)
+
+    return ground_truth.gt_from_frames(labelled(), camera=self.camera,
+                                       num_classes=len(self.class_names),
+                                       voxel_size=self.options.voxel_size)
+
+  def chunks(self):
+    """`(frames, predictions)` chunk by chunk, with a progress bar."""
+    import jax  # pylint: disable=import-outside-toplevel
+    self.skipped, self.frames = 0, 0
+    key = jax.random.PRNGKey(self.options.mc_seed)
+    bar = tqdm(total=len(self.stream) if self._loaded is None else len(self._loaded.sequence),
+               desc=self.name, leave=False)
+    for chunk, preds, positions in self._raw_chunks(self._size()):
+      bar.update(len(chunk))
+      if preds is None:
+        keep = self._keep(chunk)
+        self.skipped += len(chunk) - len(keep)
+        if not keep:
+          continue
+        chunk = chunk if len(keep) == len(chunk) else chunk.subset(keep)
+        if self._folder is not None:
+          preds = _stack([_read_frame(self._files[int(chunk.info["frame_ids"][i])],
+                                      self.options.class_map) for i in range(len(chunk))])
+        else:
+          preds = self._predict(chunk, [positions[i] for i in keep], key)
+      self._check(preds)
+      self.frames += len(chunk)
+      yield chunk, preds
+    bar.close()
+
+  def _predict(self, chunk, positions, key) -> dict:
+    import jax  # pylint: disable=import-outside-toplevel
+    out = []
+    for t, position in enumerate(positions):
+      det = self.front_end.deterministic(chunk.rgb[t])
+      mean, var = self.front_end.mc(chunk.rgb[t], num_samples=self.options.num_samples,
+                                    key=jax.random.fold_in(key, position))
+      cm = self.options.class_map
+      if cm is not None:
+        _check_k(cm, mean.shape[-1], f"the front end {self.front_end.model_id}")
+        mean, var = (np.asarray(a) for a in cm.remap(mean, var))
+        det = np.asarray(cm.remap(det)[0])
+      out.append((det, mean, var))
+    return _stack(out)
+
+  def _check(self, preds: dict) -> None:
+    k = int(preds["mean"].shape[-1])
+    if self.class_names and len(self.class_names) != k:
+      raise ValueError(f"{self.name}: the predictions have {k} classes but the GT's label space "
+                       f"has {len(self.class_names)} ({', '.join(self.class_names)}); give "
+                       "--class-map, or --label-space for the predictions' classes")
+    if tuple(preds["mean"].shape[1:3]) != tuple(self.image_size):
+      raise ValueError(f"{self.name}: the predictions are {preds['mean'].shape[1]}x"
+                       f"{preds['mean'].shape[2]} pixels but the depth is "
+                       f"{self.image_size[0]}x{self.image_size[1]}")
+
+
+def _numbered_files(folder: str) -> dict:
+  """`{frame id: path}` of a folder of per-frame `.npz` files named by frame number."""
+  src = sources.precomputed_source(folder)
+  out = {}
+  for f in src.files:
+    stem = os.path.splitext(os.path.basename(str(f)))[0]
+    if not stem.isdigit():
+      raise ValueError(f"--predictions {folder}: {os.path.basename(str(f))} is not named by "
+                       "frame number (e.g. 000012.npz for frame 12), which a streamed "
+                       "sequence needs")
+    out[int(stem)] = str(f)
+  return out
+
+
+def _stack(frames: list) -> dict:
+  """`{det, mean, var}` stacked from per-frame `(det or None, mean, var or None)`."""
+  mean = np.stack([m for _, m, _ in frames])
+  var = None if any(v is None for _, _, v in frames) else np.stack([v for _, _, v in frames])
+  det = mean if any(d is None for d, _, _ in frames) else np.stack([d for d, _, _ in frames])
+  return {"det": det, "mean": mean, "var": var}

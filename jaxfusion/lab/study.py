@@ -70,7 +70,8 @@ from jaxfusion.datasets.classes import CLASS_NAMES
 # (`jaxfusion.observations`); their names stay importable from here.
 from jaxfusion.observations import HEADROOM
 from jaxfusion.observations import alpha_of_prediction
-from jaxfusion.observations import classify_voxels
+from jaxfusion.observations import classify_voxels  # pylint: disable=unused-import
+from jaxfusion.observations import classify_votes
 from jaxfusion.observations import feature_histograms
 from jaxfusion.observations import pixel_observations
 
@@ -226,6 +227,137 @@ def _labels_at(voxels, gt_coords) -> np.ndarray:
   return out
 
 
+def _check_predictions(sequence, predictions: dict) -> None:
+  missing = [k for k in ("det", "mean", "var") if k not in predictions]
+  if missing:
+    raise ValueError(f"predictions need 'det', 'mean' and 'var'; missing {missing}")
+  shape = np.shape(sequence.depth)
+  for k in ("det", "mean", "var"):
+    if np.ndim(predictions[k]) != 4 or np.shape(predictions[k])[:3] != shape:
+      raise ValueError(f"predictions[{k!r}] must be (T, H, W, K) with (T, H, W) = {shape}; got "
+                       f"{np.shape(predictions[k])}")
+
+
+class SequenceAnalysis:
+  """What the study counts for one sequence, accumulated chunk by chunk (`add`), so that a
+  long sequence never has to be held whole; `result()` is `analyze_sequence`'s dict.
+
+  Each rule's map (and the oracle's) is carried from chunk to chunk; the pixel votes per GT
+  voxel, the α and feature histograms and the pixel counts are summed. Fed the whole sequence
+  as one chunk it computes exactly what it always has.
+
+  Args:
+    gt: GT voxel labels (`coords (G, 3)`, `labels (G,)`).
+    config: the study's configuration.
+    num_classes: K.
+    grow: maps that grow before they fill (`jf.Mapper`, for data of unknown extent) instead
+      of maps of `config.run.capacity` slots.
+  """
+
+  def __init__(self, gt: dict, config: StudyConfig, num_classes: int, *, grow: bool = False):
+    self.gt, self.config, self.k, self.grow = gt, config, int(num_classes), grow
+    self.gt_coords = np.asarray(gt["coords"])
+    self.gt_labels = np.asarray(gt["labels"], np.int64)
+    self.votes = np.zeros((len(self.gt_labels), self.k), np.int64)
+    self.alpha_hist = np.zeros((2, len(ALPHA_EDGES) - 1), np.int64)
+    self.features, self.right, self.wrong = None, 0, 0
+    self.rules = {name: config.run.make_rule(name) for name in config.run.rules}
+    self.rules.update(config.fitted)
+    self.oracle_rule = config.run.make_rule("bayes")
+    self.maps = {}
+
+  def _fuse(self, key, rule, depth, poses, camera, probs, var, rgb=None):
+    frames = jf.Frame(np.asarray(depth, np.float32), np.asarray(poses, np.float32), probs,
+                      None if var is None else var, rgb if rule.context else None)
+    if key not in self.maps:
+      if self.grow:
+        self.maps[key] = jf.Mapper(rule, num_classes=self.k, voxel_size=self.config.run.voxel_size,
+                                   capacity=self.config.run.capacity)
+      else:
+        self.maps[key] = jf.init_map(capacity=self.config.run.capacity, num_classes=self.k,
+                                     voxel_size=self.config.run.voxel_size, rule=rule)
+    if self.grow:
+      self.maps[key].fuse_sequence(frames, camera)
+    else:
+      self.maps[key] = jf.fuse_sequence(self.maps[key], frames, camera, rule)
+
+  def add(self, sequence, predictions: dict) -> None:
+    """Adds a chunk of frames (`depth`, `T_world_cam`, `camera`, `rgb`) and its predictions
+    (`det`, `mean`, `var`, each `(t, H, W, K)`)."""
+    _check_predictions(sequence, predictions)
+    k, config = self.k, self.config
+    if predictions["mean"].shape[-1] != k:
+      raise ValueError(f"predictions have {predictions['mean'].shape[-1]} classes, not {k}")
+    obs = pixel_observations(sequence.depth, sequence.T_world_cam, sequence.camera,
+                             predictions["mean"], self.gt_coords,
+                             voxel_size=config.run.voxel_size)
+    observed = obs["gt_index"] >= 0
+    right = observed & (obs["pred"] == self.gt_labels[np.maximum(obs["gt_index"], 0)])
+    keep = observed.reshape(-1)
+    self.votes += np.bincount(obs["gt_index"].reshape(-1)[keep] * k
+                              + obs["pred"].reshape(-1)[keep],
+                              minlength=self.votes.size).reshape(self.votes.shape)
+    alpha = alpha_of_prediction(predictions["var"].reshape(right.shape + (k,)), obs["pred"])
+    self.alpha_hist += np.stack([np.histogram(alpha[right], ALPHA_EDGES)[0],
+                                 np.histogram(alpha[observed & ~right], ALPHA_EDGES)[0]]
+                                ).astype(np.int64)
+    self.right += int(right.sum())
+    self.wrong += int((observed & ~right).sum())
+    rgb = getattr(sequence, "rgb", None)
+    for name, rule in self.rules.items():
+      paper = name in config.run.rules
+      robust = name in config_lib.ROBUST_RULES
+      probs = predictions["mean"] if (robust or not paper) else predictions["det"]
+      var = (predictions["var"] if robust else None) if paper else (
+          predictions["var"] if rule.requires_var else None)
+      self._fuse(name, rule, sequence.depth, sequence.T_world_cam, sequence.camera, probs, var,
+                 None if paper else rgb)
+    features = feature_histograms(sequence.depth, predictions["mean"], predictions["var"], rgb,
+                                  sequence.camera, right, observed)
+    self.features = features if self.features is None else {
+        n: self.features[n] + v for n, v in features.items()}
+    # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
+    masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0
+                      ).astype(np.float32)
+    self._fuse(ORACLE, self.oracle_rule, masked, sequence.T_world_cam, sequence.camera,
+               predictions["mean"], None)
+
+  def _voxels(self, key) -> dict:
+    state = self.maps[key].state if self.grow else self.maps[key]
+    return jf.read_map(state)
+
+  def result(self) -> dict:
+    """The counts of `analyze_sequence`."""
+    if not self.maps:
+      raise ValueError("no frames were added")
+    k, gt, gt_coords, gt_labels = self.k, self.gt, self.gt_coords, self.gt_labels
+    category = classify_votes(gt_labels, self.votes)
+    headroom = np.array([(category == c).sum() for c in range(3)], np.int64)
+    confusion, correct, labels_at, calibration = {}, {}, {}, {}
+    result_bayes = None
+    for name in self.rules:
+      voxels = self._voxels(name)
+      ev = metrics.evaluate_map(voxels, gt, k)
+      confusion[name] = ev["confusion"]
+      labels_at[name] = _labels_at(voxels, gt_coords)
+      calibration[name] = _calibration(voxels, gt_coords, gt_labels)
+      if name == "bayes":
+        result_bayes = ev
+    oracle_at = _labels_at(self._voxels(ORACLE), gt_coords)
+    in_bayes = labels_at["bayes"] >= 0
+    labels_at[ORACLE] = np.where(oracle_at >= 0, oracle_at, labels_at["bayes"])
+    confusion[ORACLE] = metrics.confusion_matrix(gt_labels[in_bayes],
+                                                 labels_at[ORACLE][in_bayes], k)
+    for name, labels in labels_at.items():
+      hit = labels == gt_labels
+      correct[name] = np.array([(hit & (category == c)).sum() for c in range(3)], np.int64)
+    return {"confusion": confusion, "correct": correct, "headroom": headroom,
+            "alpha_hist": self.alpha_hist, "feature_hist": self.features,
+            "calibration": calibration, "pixels": {"right": self.right, "wrong": self.wrong},
+            "matched": result_bayes["matched"], "map_only": result_bayes["map_only"],
+            "gt_only": result_bayes["gt_only"]}
+
+
 def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig) -> dict:
   """Fuses one sequence with every rule and the oracle and counts what the study needs.
 
@@ -240,72 +372,12 @@ def analyze_sequence(sequence, predictions: dict, gt: dict, config: StudyConfig)
     `(3,)` correctly labelled voxels per headroom category), `headroom` (`(3,)` scored voxels
     per category), `alpha_hist` (`(2, nb)` pixel observations per α bin, right then wrong),
     `pixels` (right and wrong observation counts), `matched`/`map_only`/`gt_only` (Bayesian
-    map vs GT).
+    map vs GT). `SequenceAnalysis` computes the same chunk by chunk.
   """
-  missing = [k for k in ("det", "mean", "var") if k not in predictions]
-  if missing:
-    raise ValueError(f"predictions need 'det', 'mean' and 'var'; missing {missing}")
-  shape = np.shape(sequence.depth)
-  for k in ("det", "mean", "var"):
-    if np.ndim(predictions[k]) != 4 or np.shape(predictions[k])[:3] != shape:
-      raise ValueError(f"predictions[{k!r}] must be (T, H, W, K) with (T, H, W) = {shape}; got "
-                       f"{np.shape(predictions[k])}")
-  num_classes = predictions["mean"].shape[-1]
-  gt_coords = np.asarray(gt["coords"])
-  gt_labels = np.asarray(gt["labels"], np.int64)
-  obs = pixel_observations(sequence.depth, sequence.T_world_cam, sequence.camera,
-                           predictions["mean"], gt_coords, voxel_size=config.run.voxel_size)
-  observed = obs["gt_index"] >= 0
-  right = observed & (obs["pred"] == gt_labels[np.maximum(obs["gt_index"], 0)])
-  category = classify_voxels(gt_labels, obs["gt_index"], obs["pred"], num_classes)
-  headroom = np.array([(category == c).sum() for c in range(3)], np.int64)
-  alpha = alpha_of_prediction(predictions["var"].reshape(right.shape + (num_classes,)),
-                              obs["pred"])
-  alpha_hist = np.stack([np.histogram(alpha[right], ALPHA_EDGES)[0],
-                         np.histogram(alpha[observed & ~right], ALPHA_EDGES)[0]]).astype(np.int64)
-
-  confusion, correct, labels_at, calibration = {}, {}, {}, {}
-  result_bayes = None
-  for name in config.run.rules:
-    rule = config.run.make_rule(name)
-    robust = name in config_lib.ROBUST_RULES
-    voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera,
-                   predictions["mean"] if robust else predictions["det"],
-                   predictions["var"] if robust else None, rule, config)
-    ev = metrics.evaluate_map(voxels, gt, num_classes)
-    confusion[name] = ev["confusion"]
-    labels_at[name] = _labels_at(voxels, gt_coords)
-    calibration[name] = _calibration(voxels, gt_coords, gt_labels)
-    if name == "bayes":
-      result_bayes = ev
-  for name, rule in config.fitted.items():
-    voxels = _fuse(sequence.depth, sequence.T_world_cam, sequence.camera, predictions["mean"],
-                   predictions["var"] if rule.requires_var else None, rule, config,
-                   rgb=getattr(sequence, "rgb", None))
-    confusion[name] = metrics.evaluate_map(voxels, gt, num_classes)["confusion"]
-    labels_at[name] = _labels_at(voxels, gt_coords)
-    calibration[name] = _calibration(voxels, gt_coords, gt_labels)
-  features = feature_histograms(sequence.depth, predictions["mean"], predictions["var"],
-                                getattr(sequence, "rgb", None), sequence.camera, right,
-                                observed)
-  # The oracle: only right observations, fused with the Bayesian rule on the MC mean.
-  bayes = config.run.make_rule("bayes")
-  masked = np.where(right.reshape(sequence.depth.shape), sequence.depth, 0.0).astype(np.float32)
-  oracle_voxels = _fuse(masked, sequence.T_world_cam, sequence.camera, predictions["mean"], None,
-                        bayes, config)
-  oracle_at = _labels_at(oracle_voxels, gt_coords)
-  in_bayes = labels_at["bayes"] >= 0
-  labels_at[ORACLE] = np.where(oracle_at >= 0, oracle_at, labels_at["bayes"])
-  confusion[ORACLE] = metrics.confusion_matrix(gt_labels[in_bayes],
-                                               labels_at[ORACLE][in_bayes], num_classes)
-  for name, labels in labels_at.items():
-    hit = labels == gt_labels
-    correct[name] = np.array([(hit & (category == c)).sum() for c in range(3)], np.int64)
-  return {"confusion": confusion, "correct": correct, "headroom": headroom,
-          "alpha_hist": alpha_hist, "feature_hist": features, "calibration": calibration,
-          "pixels": {"right": int(right.sum()), "wrong": int((observed & ~right).sum())},
-          "matched": result_bayes["matched"], "map_only": result_bayes["map_only"],
-          "gt_only": result_bayes["gt_only"]}
+  _check_predictions(sequence, predictions)
+  analysis = SequenceAnalysis(gt, config, predictions["mean"].shape[-1])
+  analysis.add(sequence, predictions)
+  return analysis.result()
 
 
 # --- statistics over sequences -----------------------------------------------------------------
@@ -733,7 +805,8 @@ def fitted_for(config: StudyConfig, num_classes: int) -> StudyConfig:
 def run_study_data(config: StudyConfig, out_dir: str, specs, options, *,
                    front_end=None, checkpoint: Optional[str] = None) -> dict:
   """The study on a researcher's sequences (`--data`): one group of sequences, each with its
-  own predictions and GT (`lab.sequences.load`), every rule and the oracle, paired intervals.
+  own predictions and GT, streamed from disk a chunk at a time (`lab.sequences.Streamed`,
+  `SequenceAnalysis`), every rule and the oracle, paired intervals.
 
   Args:
     config: rules, β, aggregation, fitted rows and statistics (its grid is not used).
@@ -761,7 +834,7 @@ def run_study_data(config: StudyConfig, out_dir: str, specs, options, *,
   per_sequence, classes = [], None
   for spec in tqdm(specs, desc="study"):
     t0, c0 = time.perf_counter(), time.process_time()
-    item = sequences.load(spec, options, front_end=front_end)
+    item = sequences.Streamed(spec, options, front_end=front_end)
     if classes is None:
       classes = item.class_names
       config = fitted_for(dataclasses.replace(
@@ -770,13 +843,17 @@ def run_study_data(config: StudyConfig, out_dir: str, specs, options, *,
     elif item.class_names != classes:
       raise ValueError(f"{item.name}: its classes {list(item.class_names)} are not the first "
                        f"sequence's {list(classes)}; one study, one label space")
-    preds = item.predictions
-    if preds["var"] is None:
-      raise ValueError(f"{item.name}: the predictions hold no 'var' (or 'samples'); the robust "
-                       "rules and the study's α need the MC variance")
-    result = analyze_sequence(item.sequence, preds, item.gt, config)
+    analysis = SequenceAnalysis(item.gt(), config, len(classes), grow=True)
+    for frames, preds in item.chunks():
+      if preds["var"] is None:
+        raise ValueError(f"{item.name}: the predictions hold no 'var' (or 'samples'); the "
+                         "robust rules and the study's α need the MC variance")
+      analysis.add(frames, preds)
+    if item.skipped:
+      tqdm.write(f"{item.name}: {item.skipped} frames have no prediction; skipped")
+    result = analysis.result()
     result.update(unit=item.name, shift=DATA_GROUP, sequence=item.name, source=item.source,
-                  frames=len(item.sequence), skipped=item.skipped,
+                  frames=item.frames, skipped=item.skipped,
                   seconds={"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0})
     per_sequence.append(result)
   summary = summarize(per_sequence, config)

@@ -20,6 +20,7 @@ from jaxfusion import fusion
 from jaxfusion import metrics
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
+from jaxfusion import tune as tune_lib
 from jaxfusion.lab import figures
 from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
@@ -127,6 +128,41 @@ def load_data_sequence(spec, options, *, front_end=None) -> dict:
           "num_classes": int(preds["mean"].shape[-1]), "source": item.source,
           "class_names": item.class_names,
           "capacity": state_lib.capacity_for(len(item.gt["labels"]))}
+
+
+def stream_sweep(spec, options, betas, *, rule: str = "D+R", aggregate: str = "sum",
+                 front_end=None) -> tuple:
+  """A β sweep of one `--data` sequence streamed from disk a chunk at a time
+  (`lab.sequences.Streamed`, `tune.sweep_chunks`): GT in a first pass, the R maps carried
+  over the chunks in a second.
+
+  Returns:
+    `(data, out)`: `data` with `name`, `source`, `gt`; `out` as `sweep_beta`'s.
+  """
+  from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
+  if front_end == sequences.SIMULATED:
+    return _in_memory_sweep(spec, options, betas, rule=rule, aggregate=aggregate)
+  item = sequences.Streamed(spec, options, front_end=front_end)
+  gt = item.gt()
+  stacked = rules_lib.stack([rules_lib.by_name(rule, beta=float(b), aggregate=aggregate)
+                             for b in betas])
+  chunks = (fusion.Frame(np.asarray(c.depth, np.float32), np.asarray(c.T_world_cam, np.float32),
+                         p["mean"], p["var"], np.asarray(c.rgb, np.uint8))
+            for c, p in item.chunks())
+  out = tune_lib.sweep_chunks(chunks, item.camera, gt["coords"], gt["labels"], stacked,
+                              capacity=state_lib.capacity_for(2 * len(gt["labels"])),
+                              voxel_size=options.voxel_size)
+  out["beta"] = np.asarray(betas, np.float32)
+  return {"name": item.name, "source": item.source, "gt": gt}, out
+
+
+def _in_memory_sweep(spec, options, betas, *, rule, aggregate) -> tuple:
+  from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
+  data = load_data_sequence(spec, options, front_end=sequences.SIMULATED)
+  out = sweep_beta(data["frames"], data["camera"], data["gt"]["coords"], data["gt"]["labels"],
+                   betas=betas, rule=rule, capacity=data["capacity"],
+                   voxel_size=options.voxel_size, aggregate=aggregate)
+  return data, out
 
 
 def batch_of(datas: Sequence[dict]) -> dict:
@@ -579,19 +615,23 @@ def add_tune_protocol_parser(subparsers) -> argparse.ArgumentParser:
 def sweep_command(args) -> int:
   """Runs `jaxfusion sweep`; returns the exit status."""
   specs = flags.data_sets(args, "data")["--data"]
+  betas = np.linspace(args.beta_min, args.beta_max, args.num_betas)
   if specs is not None:
     if len(specs) != 1:
       raise ValueError(f"sweep fuses one sequence: give one --data spec; got {len(specs)}")
-    data = load_data_sequence(specs[0], data_options(args), front_end=data_front_end(args))
+    start = time.perf_counter()
+    data, out = stream_sweep(specs[0], data_options(args), betas, rule=args.rule,
+                             aggregate=args.aggregate, front_end=data_front_end(args))
+    seconds = time.perf_counter() - start
   else:
     data = load_calibration_sequence(args.sequence, seed=flags.one_layout_seed(args),
                                      **data_kwargs(args, front_end_of(args)))
-  betas = np.linspace(args.beta_min, args.beta_max, args.num_betas)
-  start = time.perf_counter()
-  out = sweep_beta(data["frames"], data["camera"], data["gt"]["coords"], data["gt"]["labels"],
-                   betas=betas, rule=args.rule, capacity=data["capacity"],
-                   voxel_size=args.voxel_size, mesh=_mesh(args), aggregate=args.aggregate)
-  seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    out = sweep_beta(data["frames"], data["camera"], data["gt"]["coords"],
+                     data["gt"]["labels"], betas=betas, rule=args.rule,
+                     capacity=data["capacity"], voxel_size=args.voxel_size, mesh=_mesh(args),
+                     aggregate=args.aggregate)
+    seconds = time.perf_counter() - start
   best = int(np.nanargmax(out["miou"]))
   print(f"{data['name']} ({data['source']}), rule {args.rule}, aggregate={args.aggregate}: "
         f"{len(betas)} β in one call, {seconds:.1f} s including compilation")

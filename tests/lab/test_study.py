@@ -252,3 +252,31 @@ def test_analyze_sequence_rejects_mismatched_predictions():
     study.analyze_sequence(seq, {"det": probs, "mean": probs}, gt, config)
   with pytest.raises(ValueError, match=r"\(T, H, W, K\)"):
     study.analyze_sequence(seq, {"det": probs, "mean": probs[:, :-1], "var": probs}, gt, config)
+
+
+def test_the_analysis_of_chunks_is_the_analysis_of_the_whole_sequence():
+  """`SequenceAnalysis` fed a sequence in chunks (the streamed path of `study --data`) counts
+  exactly what `analyze_sequence` counts on the whole sequence, in fixed or growing maps."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  from jaxfusion import datasets  # pylint: disable=import-outside-toplevel
+  from jaxfusion.lab import study as study_lib  # pylint: disable=import-outside-toplevel
+  config = study_lib.StudyConfig.quick()
+  seq = datasets.make_sequence("office", 0, num_frames=5, height=20, width=24, seed=1)
+  rng = np.random.default_rng(1)
+  mean = rng.dirichlet(np.ones(7), (5, 20, 24)).astype(np.float32)
+  preds = {"det": mean, "mean": mean, "var": (0.03 * rng.random(mean.shape)).astype(np.float32)}
+  gt = datasets.gt_voxel_labels(seq, capacity=config.run.capacity)
+  whole = study_lib.analyze_sequence(seq, preds, gt, config)
+  for grow in (False, True):
+    analysis = study_lib.SequenceAnalysis(gt, config, 7, grow=grow)
+    for idx in ([0, 1], [2, 3], [4]):
+      analysis.add(seq.subset(idx), {k: v[idx] for k, v in preds.items()})
+    got = analysis.result()
+    for key in ("headroom", "alpha_hist", "matched", "map_only", "gt_only"):
+      np.testing.assert_array_equal(got[key], whole[key], err_msg=key)
+    assert got["pixels"] == whole["pixels"]
+    for m in whole["confusion"]:
+      np.testing.assert_array_equal(got["confusion"][m], whole["confusion"][m], err_msg=m)
+      np.testing.assert_array_equal(got["correct"][m], whole["correct"][m], err_msg=m)
+    for name in whole["feature_hist"]:
+      np.testing.assert_array_equal(got["feature_hist"][name], whole["feature_hist"][name])
