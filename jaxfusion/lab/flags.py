@@ -315,6 +315,14 @@ def data_options(args: argparse.Namespace, **defaults):
   return sequences.DataOptions(**{k: v for k, v in values.items() if v is not None}).validate()
 
 
+def run_data_options(args: argparse.Namespace, run):
+  """`data_options` whose unset sizes, M, MC seed, layout seed and shift are a study's run's
+  (`config.RunConfig`): what `study --data` and `mesh-study --data` read embedded specs with."""
+  return data_options(args, num_frames=run.num_frames, height=run.height, width=run.width,
+                      num_samples=run.num_samples, mc_seed=run.mc_seed,
+                      layout_seed=run.layout_seeds[0], shift=run.shifts[-1])
+
+
 # --- every rule by one name --------------------------------------------------------------------
 RULE_NAMES_HELP = ("sum_probs, sum_labels, bayes, R, D, D+R, learned (the shipped learned rule), "
                    "glfs (the shipped GLFS table) or a params.json of `jaxfusion learn-rule`")

@@ -16,7 +16,6 @@ samples per voxel); docs/equations.md §7.1–§7.2. The file holds `coords (N, 
 
 import argparse
 import dataclasses
-import glob
 import os
 from typing import Optional
 
@@ -27,17 +26,17 @@ from jaxfusion import io
 from jaxfusion.datasets import classes
 from jaxfusion.datasets import ground_truth as gt_lib
 from jaxfusion.datasets import plyfile
-from jaxfusion.datasets import scannet
+from jaxfusion.datasets import stream
+from jaxfusion.datasets import surfaces
 from jaxfusion.lab import flags
 
 SOURCES = ("auto", "images", "mesh")
-MESH_PATTERN = "*_vh_clean_2.labels.ply"
+MESH_PATTERN = "*" + surfaces.MESH_SUFFIX
 
 
 def find_labelled_mesh(folder: str) -> Optional[str]:
-  """The first (by name) `*_vh_clean_2.labels.ply` in a folder, or None."""
-  found = sorted(glob.glob(os.path.join(glob.escape(folder), MESH_PATTERN)))
-  return found[0] if found else None
+  """The folder's labelled GT mesh (`surfaces.labelled_mesh_path`), or None."""
+  return surfaces.labelled_mesh_path(folder)
 
 
 def _nyu40_ids(class_names) -> Optional[np.ndarray]:
@@ -72,21 +71,23 @@ def _relabel(seq, space: str):
 
 def _images(spec, args, space: Optional[str]):
   """`(gt dict, class names)` from the label images of the sequence a spec names."""
-  if spec.kind == "scannet":
-    if not os.path.isdir(spec.path):
-      raise FileNotFoundError(f"scannet: no such folder {spec.path!r}")
-    seq = scannet.load_scannet(spec.path, stride=args.stride, max_frames=args.frames,
-                               skip_bad=True, label_space=space or "scannet12")
-  else:
-    seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height,
-                             width=args.width, layout_seed=flags.one_layout_seed(args),
-                             stride=args.stride)
-    if space is not None:
-      seq = _relabel(seq, space)
+  if spec.kind == "scannet":        # read a chunk at a time: a long scan never held whole
+    frames = stream.open_stream(spec, stride=args.stride, num_frames=args.frames,
+                                label_space=space or "scannet12")
+    first = frames.first()
+    if first.labels is None:
+      raise ValueError(f"{spec}: the data has no ground-truth labels (no label-filt/ folder "
+                       f"and no {MESH_PATTERN})")
+    gt = gt_lib.gt_from_frames(frames.chunks(16), camera=first.camera,
+                               num_classes=len(first.class_names), voxel_size=args.voxel_size)
+    return gt, first.class_names
+  seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height,
+                           width=args.width, layout_seed=flags.one_layout_seed(args),
+                           stride=args.stride)
+  if space is not None:
+    seq = _relabel(seq, space)
   if seq.labels is None:
-    raise ValueError(f"{spec}: the data has no ground-truth labels"
-                     + (f" (no label-filt/ folder and no {MESH_PATTERN})"
-                        if spec.kind == "scannet" else ""))
+    raise ValueError(f"{spec}: the data has no ground-truth labels")
   return gt_lib.gt_voxel_labels(seq, voxel_size=args.voxel_size), seq.class_names
 
 

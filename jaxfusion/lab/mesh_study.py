@@ -316,20 +316,25 @@ def run_mesh_study(config: MeshStudyConfig, out_dir: str, *, cache_dir: Optional
                        "num_resamples": config.num_resamples,
                        "confidence": config.confidence},
             "model": front_end.model_id, "summary": summary, "sequences": names}
-  path = os.path.join(out_dir, "mesh_study.json")
-  with open(path, "w", encoding="utf-8") as f:
-    json.dump(record, f, indent=1, default=float)
-  files.append(path)
-  path = os.path.join(out_dir, "mesh_study.md")
-  with open(path, "w", encoding="utf-8") as f:
-    f.write(f"# Mesh study\n\n{len(per_sequence)} sequences (layout seeds "
-            f"{list(run.layout_seeds)}, shifts {list(run.shifts)}, {run.num_frames} frames at "
-            f"{run.height}×{run.width}, M = {run.num_samples}); geometry layer "
-            f"{config.geometry.voxel_size:g} m, τ = {config.geometry.truncation_voxels:g} "
-            f"voxels.\n\n{table}\n")
-  files.append(path)
+  files += _write_report(out_dir, record, config, table, (
+      f"{len(per_sequence)} sequences (layout seeds {list(run.layout_seeds)}, shifts "
+      f"{list(run.shifts)}, {run.num_frames} frames at {run.height}×{run.width}, M = "
+      f"{run.num_samples})"))
   return {"summary": summary, "table": table, "files": files, "sequences": names,
           "timing": {"total_s": time.perf_counter() - start}}
+
+
+def _write_report(out_dir: str, record: dict, config: MeshStudyConfig, table: str,
+                  what: str) -> list:
+  """Writes `mesh_study.json` (the record) and `mesh_study.md` (what ran, then the tables)."""
+  path_json = os.path.join(out_dir, "mesh_study.json")
+  with open(path_json, "w", encoding="utf-8") as f:
+    json.dump(record, f, indent=1, default=float)
+  path_md = os.path.join(out_dir, "mesh_study.md")
+  with open(path_md, "w", encoding="utf-8") as f:
+    f.write(f"# Mesh study\n\n{what}; geometry layer {config.geometry.voxel_size:g} m, τ = "
+            f"{config.geometry.truncation_voxels:g} voxels.\n\n{table}\n")
+  return [path_json, path_md]
 
 
 def true_surface(item, config: MeshStudyConfig, label_space: Optional[str] = None) -> dict:
@@ -401,17 +406,8 @@ def run_mesh_study_data(config: MeshStudyConfig, out_dir: str, specs, options, *
                        "surface_spacing": config.surface_spacing,
                        "num_resamples": config.num_resamples, "confidence": config.confidence},
             "classes": list(classes), "summary": summary, "sequences": names}
-  path = os.path.join(out_dir, "mesh_study.json")
-  with open(path, "w", encoding="utf-8") as f:
-    json.dump(record, f, indent=1, default=float)
-  files.append(path)
-  path = os.path.join(out_dir, "mesh_study.md")
-  with open(path, "w", encoding="utf-8") as f:
-    f.write(f"# Mesh study\n\n{len(per_sequence)} sequences of your data "
-            f"({', '.join(str(s) for s in specs)}); geometry layer "
-            f"{config.geometry.voxel_size:g} m, τ = {config.geometry.truncation_voxels:g} "
-            f"voxels.\n\n{table}\n")
-  files.append(path)
+  files += _write_report(out_dir, record, config, table, (
+      f"{len(per_sequence)} sequences of your data ({', '.join(str(s) for s in specs)})"))
   return {"summary": summary, "table": table, "files": files, "sequences": names,
           "timing": {"total_s": time.perf_counter() - start}}
 
@@ -443,11 +439,7 @@ def main(args: argparse.Namespace) -> int:
       num_resamples=args.resamples)
   data = flags.data_sets(args, "data")["--data"]
   if data is not None:
-    run = config.run
-    options = flags.data_options(args, num_frames=run.num_frames, height=run.height,
-                                 width=run.width, num_samples=run.num_samples,
-                                 mc_seed=run.mc_seed, layout_seed=run.layout_seeds[0],
-                                 shift=run.shifts[-1])
+    options = flags.run_data_options(args, config.run)
     out = run_mesh_study_data(config, args.out, data, options, checkpoint=args.checkpoint)
   else:
     out = run_mesh_study(config, args.out, cache_dir=args.cache, checkpoint=args.checkpoint)

@@ -405,28 +405,60 @@ class Streamed:
 
   def chunks(self):
     """`(frames, predictions)` chunk by chunk, with a progress bar."""
-    import jax  # pylint: disable=import-outside-toplevel
     self.skipped, self.frames = 0, 0
-    key = jax.random.PRNGKey(self.options.mc_seed)
-    bar = tqdm(total=len(self.stream) if self._loaded is None else len(self._loaded.sequence),
-               desc=self.name, leave=False)
+    bar = tqdm(total=self._length(), desc=self.name, leave=False)
     for chunk, preds, positions in self._raw_chunks(self._size()):
       bar.update(len(chunk))
-      if preds is None:
-        keep = self._keep(chunk)
-        self.skipped += len(chunk) - len(keep)
-        if not keep:
-          continue
-        chunk = chunk if len(keep) == len(chunk) else chunk.subset(keep)
-        if self._folder is not None:
-          preds = _stack([_read_frame(self._files[int(chunk.info["frame_ids"][i])],
-                                      self.options.class_map) for i in range(len(chunk))])
-        else:
-          preds = self._predict(chunk, [positions[i] for i in keep], key)
-      self._check(preds)
-      self.frames += len(chunk)
-      yield chunk, preds
+      prepared = self._prepare(chunk, preds, positions)
+      if prepared is not None:
+        self.frames += len(prepared[0])
+        yield prepared
     bar.close()
+
+  def _length(self) -> int:
+    return len(self.stream) if self._loaded is None else len(self._loaded.sequence)
+
+  @property
+  def num_chunks(self) -> int:
+    """How many chunks `chunk(k)` reads."""
+    return -(-self._length() // self._size())
+
+  @property
+  def chunk_size(self) -> int:
+    """Frames per chunk (the last may hold fewer)."""
+    return self._size()
+
+  def chunk(self, k: int):
+    """Chunk k alone, `(frames, predictions)`, or None when none of its frames is readable or
+    has a prediction (random access, for the backward passes of `tune_chunks`)."""
+    size = self._size()
+    if self._loaded is not None:
+      seq = self._loaded.sequence
+      idx = list(range(k * size, min(len(seq), (k + 1) * size)))
+      return seq.subset(idx), {key: None if v is None else v[idx]
+                               for key, v in self._loaded.predictions.items()}
+    chunk = self.stream._read(k * size, size)   # pylint: disable=protected-access
+    if chunk is None or not len(chunk):
+      return None
+    return self._prepare(chunk, None, list(range(k * size, k * size + len(chunk))))
+
+  def _prepare(self, chunk, preds, positions):
+    """A raw chunk with its predictions (read or predicted), frames without one dropped."""
+    import jax  # pylint: disable=import-outside-toplevel
+    if preds is None:
+      keep = self._keep(chunk)
+      self.skipped += len(chunk) - len(keep)
+      if not keep:
+        return None
+      chunk = chunk if len(keep) == len(chunk) else chunk.subset(keep)
+      if self._folder is not None:
+        preds = _stack([_read_frame(self._files[int(chunk.info["frame_ids"][i])],
+                                    self.options.class_map) for i in range(len(chunk))])
+      else:
+        preds = self._predict(chunk, [positions[i] for i in keep],
+                              jax.random.PRNGKey(self.options.mc_seed))
+    self._check(preds)
+    return chunk, preds
 
   def _predict(self, chunk, positions, key) -> dict:
     import jax  # pylint: disable=import-outside-toplevel

@@ -899,11 +899,7 @@ def main(args: argparse.Namespace) -> int:
       glfs=glfs, glfs_source=glfs_source, variants=flags.learned_variants(args))
   data = flags.data_sets(args, "data")["--data"]
   if data is not None:
-    run = config.run
-    options = flags.data_options(args, num_frames=run.num_frames, height=run.height,
-                                 width=run.width, num_samples=run.num_samples,
-                                 mc_seed=run.mc_seed, layout_seed=run.layout_seeds[0],
-                                 shift=run.shifts[-1])
+    options = flags.run_data_options(args, config.run)
     out = run_study_data(config, args.out, data, options, checkpoint=args.checkpoint)
     print(out["table"])
     print(f"wrote {len(out['files'])} files under {args.out}/ in "

@@ -127,7 +127,26 @@ def load_data_sequence(spec, options, *, front_end=None) -> dict:
   return {"name": item.name, "frames": frames, "camera": seq.camera, "gt": item.gt,
           "num_classes": int(preds["mean"].shape[-1]), "source": item.source,
           "class_names": item.class_names,
-          "capacity": state_lib.capacity_for(len(item.gt["labels"]))}
+          "capacity": data_capacity(item.gt)}
+
+
+# Map slots per GT voxel for a researcher's data: its maps also hold the voxels of pixels whose
+# GT class is ignored (e.g. ScanNet's walls in the 12-class space), which the GT leaves out.
+DATA_SLOTS_PER_GT_VOXEL = 4
+
+
+def data_capacity(gt: dict) -> int:
+  """Map capacity for a `--data` sequence: `capacity_for` 4 × its GT voxels (a map that still
+  fills reports its dropped voxels: `report_dropped`)."""
+  return state_lib.capacity_for(DATA_SLOTS_PER_GT_VOXEL * max(len(gt["labels"]), 1))
+
+
+def report_dropped(out: dict, name: str) -> None:
+  """One line when a sweep's maps dropped voxels (a full map is reported, never silent)."""
+  dropped = int(np.max(out.get("dropped", 0)))
+  if dropped:
+    print(f"warning: {name}: the maps filled and dropped up to {dropped} voxel observations; "
+          "the scores are of truncated maps")
 
 
 def stream_sweep(spec, options, betas, *, rule: str = "D+R", aggregate: str = "sum",
@@ -150,9 +169,10 @@ def stream_sweep(spec, options, betas, *, rule: str = "D+R", aggregate: str = "s
                          p["mean"], p["var"], np.asarray(c.rgb, np.uint8))
             for c, p in item.chunks())
   out = tune_lib.sweep_chunks(chunks, item.camera, gt["coords"], gt["labels"], stacked,
-                              capacity=state_lib.capacity_for(2 * len(gt["labels"])),
+                              capacity=data_capacity(gt),
                               voxel_size=options.voxel_size)
   out["beta"] = np.asarray(betas, np.float32)
+  report_dropped(out, item.name)
   return {"name": item.name, "source": item.source, "gt": gt}, out
 
 
@@ -559,6 +579,10 @@ def add_tune_beta_parser(subparsers) -> argparse.ArgumentParser:
                       help="surrogate to minimise")
   parser.add_argument("--per-class", action="store_true",
                       help="fit one value per class for each tuned hyperparameter")
+  parser.add_argument("--stream", action="store_true",
+                      help="with --calibration-data: read the calibration sequences from disk a "
+                           "chunk at a time and differentiate chunk by chunk (bounded memory, "
+                           "the same fit, about 3 passes over the data a step)")
   add_data_args(parser, calibration=True)
   parser.set_defaults(func=tune_beta_command)
   return parser
@@ -654,46 +678,8 @@ def sweep_command(args) -> int:
   return 0
 
 
-def _fmt(value) -> str:
-  v = np.asarray(value)
-  return f"{float(v):.4g}" if v.ndim == 0 else "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
-
-
-def tune_beta_command(args) -> int:
-  """Runs `jaxfusion tune-beta`; returns the exit status."""
-  train = tuple(t.strip() for t in args.tune.split(",") if t.strip())
-  given = flags.data_sets(args, "calibration_data", "data")
-  if given["--calibration-data"] is not None or given["--data"] is not None:
-    if given["--calibration-data"] is None:
-      raise ValueError("tune-beta --data (the held-out sequences) needs --calibration-data "
-                       "(the sequences to fit β on)")
-    options, front_end = data_options(args), data_front_end(args)
-    cal = batch_of([load_data_sequence(s, options, front_end=front_end)
-                    for s in given["--calibration-data"]])
-    cal.update(name=", ".join(cal["names"]), gt={"coords": cal["coords"],
-                                                  "labels": cal["labels"]})
-    held_specs = given["--data"] or []
-    load_held = lambda spec: load_data_sequence(spec, options, front_end=front_end)
-  else:
-    kwargs = data_kwargs(args, front_end_of(args))
-    cal = load_calibration_sequence(args.calibration, seed=flags.one_layout_seed(args),
-                                    **kwargs)
-    held_specs = [s.strip() for s in args.held_out.split(",") if s.strip()]
-    load_held = lambda spec: load_calibration_sequence(spec, seed=flags.one_layout_seed(args),
-                                                       **kwargs)
-  start = time.perf_counter()
-  result = tune_hparams(cal["frames"], cal["camera"], cal["gt"]["coords"],
-                        cal["gt"]["labels"], rule=args.rule, init={"beta": args.init_beta},
-                        train=train, steps=args.steps, learning_rate=args.learning_rate,
-                        capacity=cal["capacity"], voxel_size=args.voxel_size,
-                        aggregate=args.aggregate, objective=args.objective,
-                        per_class=args.per_class, mask=cal.get("mask"))
-  seconds = time.perf_counter() - start
-  print(f"calibration {cal['name']} ({cal['source']}), rule {args.rule}, "
-        f"aggregate={args.aggregate}, objective {args.objective}: {args.steps} Adam steps in "
-        f"{seconds:.1f} s")
-  print(f"  loss {result.losses[0]:.4f} -> {result.losses[-1]:.4f}; fitted "
-        + ", ".join(f"{k} = {_fmt(result.hparams[k])}" for k in train))
+def _score_held_out(args, result, held_specs, load_held) -> list:
+  """mIoU of the baseline β and of the fitted rule on each held-out sequence (printed)."""
   baseline = rules_lib.by_name(args.rule, beta=args.baseline_beta, aggregate=args.aggregate)
   held_out = []
   for spec in held_specs:
@@ -714,12 +700,124 @@ def tune_beta_command(args) -> int:
     mean_tuned = float(np.mean([h["miou_tuned"] for h in held_out]))
     print(f"  {'mean':>18}: mIoU {100 * mean_base:6.2f} at β = {args.baseline_beta:.3f}, "
           f"{100 * mean_tuned:6.2f} at β*")
+  return held_out
+
+
+def _fmt(value) -> str:
+  v = np.asarray(value)
+  return f"{float(v):.4g}" if v.ndim == 0 else "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+
+
+def tune_beta_command(args) -> int:
+  """Runs `jaxfusion tune-beta`; returns the exit status."""
+  train = tuple(t.strip() for t in args.tune.split(",") if t.strip())
+  given = flags.data_sets(args, "calibration_data", "data")
+  if args.stream and given["--calibration-data"] is None:
+    raise ValueError("tune-beta --stream reads --calibration-data sequences chunk by chunk; "
+                     "give --calibration-data")
+  if given["--calibration-data"] is not None or given["--data"] is not None:
+    if given["--calibration-data"] is None:
+      raise ValueError("tune-beta --data (the held-out sequences) needs --calibration-data "
+                       "(the sequences to fit β on)")
+    options, front_end = data_options(args), data_front_end(args)
+    held_specs = given["--data"] or []
+    load_held = lambda spec: load_data_sequence(spec, options, front_end=front_end)
+    if args.stream:
+      return _tune_beta_streamed(args, given["--calibration-data"], options, front_end, train,
+                                 held_specs, load_held)
+    cal = batch_of([load_data_sequence(s, options, front_end=front_end)
+                    for s in given["--calibration-data"]])
+    cal.update(name=", ".join(cal["names"]), gt={"coords": cal["coords"],
+                                                  "labels": cal["labels"]})
+  else:
+    kwargs = data_kwargs(args, front_end_of(args))
+    cal = load_calibration_sequence(args.calibration, seed=flags.one_layout_seed(args),
+                                    **kwargs)
+    held_specs = [s.strip() for s in args.held_out.split(",") if s.strip()]
+    load_held = lambda spec: load_calibration_sequence(spec, seed=flags.one_layout_seed(args),
+                                                       **kwargs)
+  start = time.perf_counter()
+  result = tune_hparams(cal["frames"], cal["camera"], cal["gt"]["coords"],
+                        cal["gt"]["labels"], rule=args.rule, init={"beta": args.init_beta},
+                        train=train, steps=args.steps, learning_rate=args.learning_rate,
+                        capacity=cal["capacity"], voxel_size=args.voxel_size,
+                        aggregate=args.aggregate, objective=args.objective,
+                        per_class=args.per_class, mask=cal.get("mask"))
+  seconds = time.perf_counter() - start
+  print(f"calibration {cal['name']} ({cal['source']}), rule {args.rule}, "
+        f"aggregate={args.aggregate}, objective {args.objective}: {args.steps} Adam steps in "
+        f"{seconds:.1f} s")
+  print(f"  loss {result.losses[0]:.4f} -> {result.losses[-1]:.4f}; fitted "
+        + ", ".join(f"{k} = {_fmt(result.hparams[k])}" for k in train))
+  held_out = _score_held_out(args, result, held_specs, load_held)
   _write_json(args.json, {
       "calibration": cal["name"], "source": cal["source"], "rule": args.rule,
       "aggregate": args.aggregate, "objective": args.objective, "per_class": args.per_class,
       "hparams": result.hparams, "losses": result.losses.tolist(),
       "beta_path": result.path.get("beta", np.array([])).tolist(),
       "seconds": seconds, "held_out": held_out})
+  return 0
+
+
+def streamed_calibration(specs, options, *, front_end=None) -> tuple:
+  """The calibration sequences of `--calibration-data` for `tune_chunks`: `(read_chunk,
+  num_chunks, chunk_size, camera, gts, names, num_classes)`, each sequence streamed from disk
+  (`lab.sequences.Streamed`; GT in a first pass, chunk k read on demand)."""
+  from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
+  items = [sequences.Streamed(s, options, front_end=front_end) for s in specs]
+  cameras = {tuple(float(c) for c in i.camera) for i in items}
+  sizes = {tuple(i.image_size) for i in items}
+  if len(cameras) != 1 or len(sizes) != 1:
+    raise ValueError("the calibration sequences must share one camera and image size")
+  classes = {i.class_names for i in items}
+  if len(classes) != 1:
+    raise ValueError("the calibration sequences must share one label space")
+  gts = [i.gt() for i in items]
+  size = max(i.chunk_size for i in items)
+  h, w = items[0].image_size
+  k = len(items[0].class_names)
+
+  def read_chunk(b, j):
+    got = items[b].chunk(j)
+    if got is None:          # no frame of this chunk is readable: a frame that touches nothing
+      return fusion.Frame(np.zeros((1, h, w), np.float32), np.eye(4, dtype=np.float32)[None],
+                          np.full((1, h, w, k), 1.0 / k, np.float32),
+                          np.zeros((1, h, w, k), np.float32))
+    c, p = got
+    return fusion.Frame(np.asarray(c.depth, np.float32), np.asarray(c.T_world_cam, np.float32),
+                        p["mean"], p["var"])
+
+  return (read_chunk, [i.num_chunks for i in items], size, items[0].camera, gts,
+          [i.name for i in items], k)
+
+
+def _tune_beta_streamed(args, specs, options, front_end, train, held_specs, load_held) -> int:
+  """`tune-beta --stream`: β fitted through the calibration sequences read chunk by chunk
+  (`tune_chunks.tune_hparams_chunks`), then scored on the held-out ones."""
+  from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+  from jaxfusion import tune_chunks  # pylint: disable=import-outside-toplevel
+  read, counts, size, camera, gts, names, k = streamed_calibration(specs, options,
+                                                                   front_end=front_end)
+  bar = tqdm(total=args.steps, desc="tune-beta (streamed)", unit="step")
+  start = time.perf_counter()
+  result = tune_chunks.tune_hparams_chunks(
+      read, counts, camera, gts, num_classes=k, rule=args.rule, init={"beta": args.init_beta},
+      train=train, steps=args.steps, learning_rate=args.learning_rate,
+      capacity=max(data_capacity(g) for g in gts), voxel_size=args.voxel_size,
+      aggregate=args.aggregate, objective=args.objective, per_class=args.per_class,
+      chunk_size=size, progress=lambda step, loss: (bar.update(1), bar.set_postfix(
+          loss=f"{loss:.4f}")))
+  bar.close()
+  seconds = time.perf_counter() - start
+  print(f"calibration {', '.join(names)} (streamed in chunks of {size} frames), rule "
+        f"{args.rule}, objective {args.objective}: {args.steps} Adam steps in {seconds:.1f} s")
+  print(f"  loss {result.losses[0]:.4f} -> {result.losses[-1]:.4f}; fitted "
+        + ", ".join(f"{key} = {_fmt(result.hparams[key])}" for key in train))
+  held_out = _score_held_out(args, result, held_specs, load_held)
+  _write_json(args.json, {
+      "calibration": names, "streamed": True, "rule": args.rule, "aggregate": args.aggregate,
+      "objective": args.objective, "per_class": args.per_class, "hparams": result.hparams,
+      "losses": result.losses.tolist(), "seconds": seconds, "held_out": held_out})
   return 0
 
 
