@@ -127,6 +127,7 @@ def parse_spec(spec: str) -> SequenceSpec:
 def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, width: int = 160,
               layout_seed: int = 0, shift: float = 1.0, stride: int = 1,
               skip_bad: bool = True, label_space: Optional[str] = None,
+              label_tsv: Optional[str] = None,
               **render) -> RGBDSequence:
   """Loads the sequence a spec names.
 
@@ -142,6 +143,8 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
     skip_bad: skip (and count, with one warning) unreadable frames of a folder.
     label_space: the classes a ScanNet folder's NYU40 GT is read into
       (`classes.LABEL_SPACES`; default "scannet12"); other kinds carry their own classes.
+    label_tsv: ScanNet's `scannetv2-labels.combined.tsv`, when the folder's `label-filt/` holds
+      raw ScanNet ids (as ScanNet's own 2D label exports do) rather than NYU40 ids.
     **render: passed to `make_sequence` (`realism`, `sensing`).
 
   Returns:
@@ -168,7 +171,8 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
     return dataclasses.replace(seq if len(keep) == len(seq) else seq.subset(keep), info=info)
   if spec.kind == "scannet":
     seq = scannet.load_scannet(spec.path, stride=stride, max_frames=num_frames,
-                               skip_bad=skip_bad, label_space=label_space or "scannet12")
+                               skip_bad=skip_bad, label_space=label_space or "scannet12",
+                               label_tsv=label_tsv)
   else:
     seq = tum.load_tum(spec.path, stride=stride, max_frames=num_frames, skip_bad=skip_bad)
   if len(seq) == 0:

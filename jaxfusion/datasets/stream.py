@@ -32,12 +32,14 @@ class SequenceStream:
 
   def __init__(self, spec, *, num_frames: Optional[int] = None, height: int = 120,
                width: int = 160, layout_seed: int = 0, shift: float = 1.0, stride: int = 1,
-               skip_bad: bool = True, label_space: Optional[str] = None, **render):
+               skip_bad: bool = True, label_space: Optional[str] = None,
+               label_tsv: Optional[str] = None, **render):
     spec = specs_lib.parse_spec(spec) if isinstance(spec, str) else spec
     self.spec = spec.resolved(layout_seed=layout_seed, shift=shift)
     self._stride = max(int(stride), 1)
     self._skip_bad = skip_bad
     self._label_space = label_space
+    self._label_tsv = label_tsv
     self._whole = None
     if int(stride) < 1:
       raise ValueError(f"stride must be ≥ 1; got {stride}")
@@ -77,7 +79,8 @@ class SequenceStream:
     try:
       if kind == "scannet":
         return scannet.load_scannet(path, frame_ids=ids, skip_bad=self._skip_bad,
-                                    label_space=self._label_space or "scannet12")
+                                    label_space=self._label_space or "scannet12",
+                                    label_tsv=self._label_tsv)
       if kind == "tum":
         return tum.load_tum(path, stride=self._stride, first=position, max_frames=len(ids),
                             skip_bad=self._skip_bad)
@@ -110,5 +113,6 @@ def _with_ids(chunk: RGBDSequence, ids) -> RGBDSequence:
 
 def open_stream(spec, **kwargs) -> SequenceStream:
   """A `SequenceStream` of a spec (`load_spec`'s arguments: `num_frames`, `height`, `width`,
-  `layout_seed`, `shift`, `stride`, `skip_bad`, `label_space`, rendering options)."""
+  `layout_seed`, `shift`, `stride`, `skip_bad`, `label_space`, `label_tsv`, rendering
+  options)."""
   return SequenceStream(spec, **kwargs)

@@ -254,6 +254,9 @@ def add_label_space(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--label-space", choices=tuple(classes.LABEL_SPACES), default=None,
                       help="the classes a ScanNet folder's NYU40 GT is read into (default "
                            "scannet12, the paper's; embedded: the embedded world's 7)")
+  parser.add_argument("--label-tsv", default=None, metavar="TSV",
+                      help="ScanNet's scannetv2-labels.combined.tsv, when label-filt/ holds raw "
+                           "ScanNet ids (ScanNet's own 2D label exports) rather than NYU40 ids")
   parser.add_argument("--class-map", default=None, metavar="FILE",
                       help="remap the network's classes to the map's before fusion: a .json or "
                            ".csv file (network class → map class; jaxfusion.classmap has the "
@@ -306,7 +309,8 @@ def data_options(args: argparse.Namespace, **defaults):
       width=getattr(args, "width", None), stride=getattr(args, "stride", 1),
       predictions=getattr(args, "predictions", None),
       missing=getattr(args, "missing_predictions", "error"),
-      label_space=getattr(args, "label_space", None), class_map=class_map(args),
+      label_space=getattr(args, "label_space", None),
+      label_tsv=getattr(args, "label_tsv", None), class_map=class_map(args),
       voxel_size=getattr(args, "voxel_size", None), num_samples=getattr(args, "num_samples", None),
       mc_seed=getattr(args, "mc_seed", None), cache_dir=getattr(args, "cache", None))
   for key, value in defaults.items():

@@ -73,7 +73,8 @@ def _images(spec, args, space: Optional[str]):
   """`(gt dict, class names)` from the label images of the sequence a spec names."""
   if spec.kind == "scannet":        # read a chunk at a time: a long scan never held whole
     frames = stream.open_stream(spec, stride=args.stride, num_frames=args.frames,
-                                label_space=space or "scannet12")
+                                label_space=space or "scannet12",
+                                label_tsv=getattr(args, "label_tsv", None))
     first = frames.first()
     if first.labels is None:
       raise ValueError(f"{spec}: the data has no ground-truth labels (no label-filt/ folder "
@@ -163,6 +164,9 @@ def add_parser(subparsers) -> None:
   p.add_argument("--label-space", default=None, metavar="SPACE",
                  help="the classes of the GT: " + ", ".join(classes.LABEL_SPACES)
                       + " (default: scannet12 for ScanNet, the data's own classes otherwise)")
+  p.add_argument("--label-tsv", default=None, metavar="TSV",
+                 help="ScanNet's scannetv2-labels.combined.tsv, when label-filt/ holds raw "
+                      "ScanNet ids rather than NYU40 ids")
   p.add_argument("--frames", type=int, default=None,
                  help="frames of an embedded sequence (default 60) / the most frames read "
                       "from a folder (default all)")

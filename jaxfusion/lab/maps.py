@@ -120,7 +120,7 @@ def run_command(args: argparse.Namespace) -> int:
   class_map = _class_map(args)
   seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height, width=args.width,
                            layout_seed=flags.one_layout_seed(args), stride=args.stride,
-                           label_space=args.label_space)
+                           label_space=args.label_space, label_tsv=args.label_tsv)
   mapper, num_classes = None, None
   with tqdm(total=len(seq), desc="fusing") as bar:
     for count, frames in _chunks(seq, _predictions(seq, args, class_map), RUN_CHUNK,

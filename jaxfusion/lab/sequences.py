@@ -54,6 +54,7 @@ class DataOptions:
       front end.
     missing: a frame without a prediction file: "error" or "skip" (dropped and counted).
     label_space: the classes a ScanNet folder's GT is read into (None: "scannet12").
+    label_tsv: ScanNet's label table, when `label-filt/` holds raw ScanNet ids.
     class_map: a `ClassMap` applied to the predictions, or None.
     voxel_size: voxel edge of the GT voxels, metres.
     num_samples: MC-dropout samples M of the front end.
@@ -70,6 +71,7 @@ class DataOptions:
   predictions: Optional[str] = None
   missing: str = "error"
   label_space: Optional[str] = None
+  label_tsv: Optional[str] = None
   class_map: object = None
   voxel_size: float = 0.1
   num_samples: int = 16
@@ -255,7 +257,7 @@ def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Load
   frames = options.num_frames if spec.is_embedded else options.max_frames
   sequence = datasets.load_spec(spec, num_frames=frames, height=options.height,
                                 width=options.width, stride=options.stride,
-                                label_space=options.label_space)
+                                label_space=options.label_space, label_tsv=options.label_tsv)
   skipped = 0
   if options.predictions is not None:
     folder = sets.predictions_folder(options.predictions, spec)
@@ -335,7 +337,8 @@ class Streamed:
       first = self._loaded.sequence
     else:
       self.stream = stream.open_stream(self.spec, num_frames=options.max_frames,
-                                       stride=options.stride, label_space=options.label_space)
+                                       stride=options.stride, label_space=options.label_space,
+                                       label_tsv=options.label_tsv)
       first = self.stream.first()
     self.class_names = tuple(first.class_names)
     self.camera, self.image_size = first.camera, first.image_size

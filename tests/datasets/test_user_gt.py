@@ -72,6 +72,7 @@ def test_streamed_gt_is_bit_identical_to_the_whole_sequence_gt(office, chunk):
   assert_same(datasets.gt_voxel_labels(seq, voxel_size=0.1, chunk=chunk), want)
 
 
+@pytest.mark.slow
 def test_streamed_gt_of_single_frames_into_a_map_that_grows(office, monkeypatch):
   seq, want = office
   # One `RGBDFrame` at a time, into a map that starts too small and grows.

@@ -178,3 +178,21 @@ def test_learn_rule_and_mesh_study_on_a_scannet_set(scannet_set, tmp_path, capsy
   record = json.loads((tmp_path / "ms" / "mesh_study.json").read_text())
   assert record["classes"] == list(datasets.CLASS_NAMES)
   assert record["summary"]["geometry"]["fscore@0.05"] > 0.25   # 24x32 frames: a sparse mesh
+
+
+@pytest.mark.slow
+def test_tune_beta_streamed_fits_what_the_in_memory_fit_fits(scannet_set, tmp_path, capsys):
+  a, b = (f"scannet:{scannet_set}/scene00{s}_00" for s in (21, 22))
+  common = ["tune-beta", "--calibration-data", a, "--data", b, "--steps", "2",
+            "--predictions", str(scannet_set / "preds"), "--label-space", "embedded"]
+  code, _, _ = _main(common + ["--json", str(tmp_path / "memory.json")], capsys)
+  assert code == 0
+  code, out, _ = _main(common + ["--stream", "--json", str(tmp_path / "stream.json")], capsys)
+  assert code == 0 and "streamed in chunks" in out
+  memory = json.loads((tmp_path / "memory.json").read_text())
+  stream = json.loads((tmp_path / "stream.json").read_text())
+  np.testing.assert_allclose(stream["losses"], memory["losses"], rtol=1e-4)
+  np.testing.assert_allclose(stream["hparams"]["beta"], memory["hparams"]["beta"], rtol=1e-4)
+  assert [h["sequence"] for h in stream["held_out"]] == ["scene0022_00"]
+  code, _, err = _main(["tune-beta", "--stream"], capsys)
+  assert code == 2 and "--stream reads --calibration-data" in err
