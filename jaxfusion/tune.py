@@ -479,6 +479,41 @@ def _tune_loop(params, fixed, learning_rate, frames, mask, camera, coords, label
   return final, losses, path, grads
 
 
+def start_hparams(rule: str, *, aggregate: str, init: Optional[dict], train: Sequence[str],
+                  steps: int, num_classes: int, per_class: bool) -> tuple:
+  """The checked start of a fit of a robust rule's hyperparameters.
+
+  Returns:
+    `(probe rule, train names, hparams)`: the rule with its defaults, the names to fit, and
+    every hyperparameter's start value (`init` over the defaults; per class `(K,)` for the
+    fitted ones with `per_class`).
+
+  Raises:
+    ValueError: a non-robust rule, a hyperparameter the rule does not use, `steps < 1`, or a
+      per-class value whose length is not K.
+  """
+  probe = rules_lib.by_name(rule, aggregate=aggregate)
+  if probe.name not in USED_HPARAMS:
+    raise ValueError(f"only the robust rules (R, D, D+R) have continuous hyperparameters to "
+                     f"tune; got {rule!r}")
+  train = tuple(train)
+  unused = [k for k in train if k not in USED_HPARAMS[probe.name]]
+  if unused or not train:
+    raise ValueError(f"rule {probe.name!r} tunes {USED_HPARAMS[probe.name]}; got {train}")
+  if steps < 1:
+    raise ValueError(f"steps must be >= 1; got {steps}")
+  hparams = {k: np.asarray(v, np.float32) for k, v in probe.hparams.items()}
+  for k, v in (init or {}).items():
+    if k not in hparams:
+      raise ValueError(f"unknown hyperparameter {k!r}; the rule has {sorted(hparams)}")
+    hparams[k] = np.asarray(v, np.float32)
+  if per_class:
+    for k in train:
+      hparams[k] = np.broadcast_to(hparams[k], (num_classes,)).copy()
+  rules_base.check_class_shapes(hparams, num_classes, tuple(hparams))
+  return probe, train, hparams
+
+
 def tune_hparams(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_labels, *,
                  rule: str = "D+R", init: Optional[dict] = None, train: Sequence[str] = ("beta",),
                  steps: int = 40, learning_rate: float = 0.1, capacity: int,
@@ -517,26 +552,10 @@ def tune_hparams(frames: fusion.Frame, camera: camera_lib.Camera, gt_coords, gt_
       unknown objective, or a per-class `init` whose length is not K.
   """
   check_objective(objective)
-  probe = rules_lib.by_name(rule, aggregate=aggregate)
-  if probe.name not in USED_HPARAMS:
-    raise ValueError(f"only the robust rules (R, D, D+R) have continuous hyperparameters to "
-                     f"tune; got {rule!r}")
-  train = tuple(train)
-  unused = [k for k in train if k not in USED_HPARAMS[probe.name]]
-  if unused or not train:
-    raise ValueError(f"rule {probe.name!r} tunes {USED_HPARAMS[probe.name]}; got {train}")
-  if steps < 1:
-    raise ValueError(f"steps must be >= 1; got {steps}")
   num_classes = np.shape(frames.probs)[-1]
-  hparams = {k: np.asarray(v, np.float32) for k, v in probe.hparams.items()}
-  for k, v in (init or {}).items():
-    if k not in hparams:
-      raise ValueError(f"unknown hyperparameter {k!r}; the rule has {sorted(hparams)}")
-    hparams[k] = np.asarray(v, np.float32)
-  if per_class:
-    for k in train:
-      hparams[k] = np.broadcast_to(hparams[k], (num_classes,)).copy()
-  rules_base.check_class_shapes(hparams, num_classes, tuple(hparams))
+  probe, train, hparams = start_hparams(rule, aggregate=aggregate, init=init, train=train,
+                                        steps=steps, num_classes=num_classes,
+                                        per_class=per_class)
   rules_lib.by_name(rule, aggregate=aggregate, **{k: v for k, v in hparams.items()
                                                   if k not in train})   # checks fixed values
   batch_dims = 2 if np.ndim(frames.depth) == 4 else 1

@@ -35,7 +35,6 @@ from jaxfusion import fusion
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
 from jaxfusion import tune
-from jaxfusion.rules import base as rules_base
 
 _STATIC = ("rule_name", "aggregate", "capacity", "num_classes", "voxel_size", "max_probes")
 
@@ -223,28 +222,12 @@ def tune_hparams_chunks(read_chunk: Callable, num_chunks: Sequence[int],
     A `tune.TuneResult` (`grads` of the unconstrained parameters per step).
   """
   tune.check_objective(objective)
-  probe = rules_lib.by_name(rule, aggregate=aggregate)
-  if probe.name not in tune.USED_HPARAMS:
-    raise ValueError(f"only the robust rules (R, D, D+R) have continuous hyperparameters to "
-                     f"tune; got {rule!r}")
-  train = tuple(train)
-  unused = [k for k in train if k not in tune.USED_HPARAMS[probe.name]]
-  if unused or not train:
-    raise ValueError(f"rule {probe.name!r} tunes {tune.USED_HPARAMS[probe.name]}; got {train}")
-  if steps < 1:
-    raise ValueError(f"steps must be >= 1; got {steps}")
+  probe, train, hparams = tune.start_hparams(rule, aggregate=aggregate, init=init, train=train,
+                                             steps=steps, num_classes=num_classes,
+                                             per_class=per_class)
   if len(num_chunks) != len(gt) or not num_chunks or min(num_chunks) < 1:
     raise ValueError(f"give at least one chunk per sequence and one GT per sequence; got "
                      f"{list(num_chunks)} chunks and {len(gt)} GTs")
-  hparams = {k: np.asarray(v, np.float32) for k, v in probe.hparams.items()}
-  for k, v in (init or {}).items():
-    if k not in hparams:
-      raise ValueError(f"unknown hyperparameter {k!r}; the rule has {sorted(hparams)}")
-    hparams[k] = np.asarray(v, np.float32)
-  if per_class:
-    for k in train:
-      hparams[k] = np.broadcast_to(hparams[k], (num_classes,)).copy()
-  rules_base.check_class_shapes(hparams, num_classes, tuple(hparams))
   params = tune.unconstrain({k: hparams[k] for k in train})
   fixed = {k: jnp.asarray(v, jnp.float32) for k, v in hparams.items() if k not in train}
   camera, _ = batch.camera_batch(camera, None)

@@ -254,6 +254,7 @@ def test_analyze_sequence_rejects_mismatched_predictions():
     study.analyze_sequence(seq, {"det": probs, "mean": probs[:, :-1], "var": probs}, gt, config)
 
 
+@pytest.mark.slow
 def test_the_analysis_of_chunks_is_the_analysis_of_the_whole_sequence():
   """`SequenceAnalysis` fed a sequence in chunks (the streamed path of `study --data`) counts
   exactly what `analyze_sequence` counts on the whole sequence, in fixed or growing maps."""

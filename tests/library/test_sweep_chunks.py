@@ -20,8 +20,8 @@ def case():
   return fusion.Frame(seq.depth, seq.T_world_cam, probs, var), seq.camera, gt, rules
 
 
-@pytest.mark.parametrize("size", [3, pytest.param(1, marks=pytest.mark.slow),
-                                  pytest.param(7, marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("size", [1, 3, 7])
 def test_chunks_equal_the_whole_sequence(case, size):
   frames, camera, gt, rules = case
   whole = tune.sweep(frames, camera, gt["coords"], gt["labels"], rules, capacity=2**13)

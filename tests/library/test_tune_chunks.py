@@ -38,7 +38,7 @@ def _reader(seqs, size):
 
 
 @pytest.mark.parametrize("objective,size,checkpoint", [
-    ("cross_entropy", 2, 2),
+    pytest.param("cross_entropy", 2, 2, marks=pytest.mark.slow),
     pytest.param("cross_entropy", 2, 1, marks=pytest.mark.slow),
     pytest.param("cross_entropy", 5, None, marks=pytest.mark.slow),
     pytest.param("soft_iou", 2, 1, marks=pytest.mark.slow),
