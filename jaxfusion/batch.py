@@ -152,8 +152,13 @@ def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera
       frames.depth.shape, mask.shape)
   state = state_lib.init_map(capacity=capacity, num_classes=num_classes, voxel_size=voxel_size,
                              rule=rule, max_probes=max_probes, geometry=geometry)
+  return fusion.fuse_sequence_unchecked(state, mask_frames(frames, mask), camera, rule)
+
+
+def mask_frames(frames: fusion.Frame, mask: jax.Array) -> fusion.Frame:
+  """The frames with depth 0 (touching nothing) where `mask (T,) bool` is False."""
   depth = jnp.where(mask[:, None, None], jnp.asarray(frames.depth, jnp.float32), 0.0)
-  return fusion.fuse_sequence_unchecked(state, frames._replace(depth=depth), camera, rule)
+  return frames._replace(depth=depth)
 
 
 def map_over(fn, *, frames_axis: bool, rule_axis: bool, camera_axis: bool):

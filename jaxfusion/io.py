@@ -157,6 +157,14 @@ def atomic_write(path: str, write) -> None:
     raise
 
 
+def save_npz(path: str, arrays: dict) -> None:
+  """Writes `arrays` as an uncompressed `.npz` at `path`, atomically (`atomic_write`)."""
+  def write(tmp):
+    with open(tmp, "wb") as f:
+      np.savez(f, **arrays)
+  atomic_write(path, write)
+
+
 def rule_metadata(rule: rules_lib.FusionRule) -> dict:
   """JSON-able description of a rule: its name, aggregation, hyperparameter values (scalars
   as numbers, per-class values and tables as nested lists) and, for a rule that reads per-pixel

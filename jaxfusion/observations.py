@@ -112,11 +112,17 @@ def classify_voxels(gt_labels, gt_index, pred, num_classes: int) -> np.ndarray:
   if gt_index.shape != pred.shape:
     raise ValueError(f"gt_index and pred must have the same length; got {gt_index.shape} and "
                      f"{pred.shape}")
-  g = len(y)
+  return classify_votes(y, voxel_votes(gt_index, pred, len(y), num_classes))
+
+
+def voxel_votes(gt_index, pred, num_voxels: int, num_classes: int) -> np.ndarray:
+  """`(G, K) int64` pixel votes per GT voxel and class: observation i (`gt_index[i] ≥ 0`)
+  votes for class `pred[i]` of voxel `gt_index[i]`; entries < 0 are not observations."""
+  gt_index = np.asarray(gt_index, np.int64).reshape(-1)
+  pred = np.asarray(pred, np.int64).reshape(-1)
   keep = gt_index >= 0
-  votes = np.bincount(gt_index[keep] * num_classes + pred[keep],
-                      minlength=g * num_classes).reshape(g, num_classes)
-  return classify_votes(y, votes)
+  return np.bincount(gt_index[keep] * num_classes + pred[keep],
+                     minlength=num_voxels * num_classes).reshape(num_voxels, num_classes)
 
 
 def classify_votes(gt_labels, votes) -> np.ndarray:

@@ -331,6 +331,21 @@ def _check_distribution(probs, name, path):
                      "channels_first=True)")
 
 
+class PrecomputedFrame(NamedTuple):
+  """One frame of a `PrecomputedSource`, as stored (`PrecomputedSource.read`).
+
+  Attributes:
+    samples: `(M, H, W, K) float32` samples, or None when the file holds moments.
+    probs: `(H, W, K) float32` MC mean, or None when the file holds samples.
+    var: `(H, W, K) float32` variance, or None.
+    extra: the file's other arrays by name (e.g. `det`), unchecked.
+  """
+  samples: Optional[np.ndarray]
+  probs: Optional[np.ndarray]
+  var: Optional[np.ndarray]
+  extra: dict
+
+
 @dataclasses.dataclass(frozen=True)
 class PrecomputedSource:
   """Predictions read from disk: one `.npz` per frame, frames in sorted file-name order.
@@ -364,36 +379,45 @@ class PrecomputedSource:
       `Prediction(probs (H, W, K), var (H, W, K) or None)` float32 arrays.
     """
     del key
-    path, contents = self._read(index)
-    if "samples" in contents:
-      probs, var = (np.asarray(a) for a in mc_moments(self._samples(path, contents)))
-    elif "mean" in contents:
-      probs = _as_float("mean", contents["mean"], path)
-      var = _as_float("var", contents["var"], path) if "var" in contents else None
-      if self.channels_first:
-        probs = np.moveaxis(probs, 0, -1) if probs.ndim == 3 else probs
-        var = np.moveaxis(var, 0, -1) if var is not None and var.ndim == 3 else var
-      if probs.ndim != 3:
-        raise ValueError(f"{path}: 'mean' must have shape (H, W, K); got {probs.shape}")
-      _check_distribution(probs, "mean", path)
-      if var is not None:
-        if var.shape != probs.shape:
-          raise ValueError(f"{path}: 'var' {var.shape} must match 'mean' {probs.shape}")
-        if var.min(initial=0.0) < 0:
-          raise ValueError(f"{path}: 'var' must be non-negative")
+    frame = self.read(index)
+    if frame.samples is not None:
+      probs, var = (np.asarray(a) for a in mc_moments(frame.samples))
     else:
+      probs, var = frame.probs, frame.var
+    if image is not None and tuple(np.shape(image)[:2]) != probs.shape[:2]:
+      raise ValueError(f"{self.files[index]}: prediction is {probs.shape[:2]} pixels but the "
+                       f"image is {tuple(np.shape(image)[:2])}")
+    return Prediction(jnp.asarray(probs), None if var is None else jnp.asarray(var))
+
+  def read(self, index: int) -> "PrecomputedFrame":
+    """Frame `index` as stored, checked, from one read of its file: its samples, or its
+    moments, and any other arrays it holds (e.g. a dropout-off pass `det`)."""
+    path, contents = self._read(index)
+    extra = {k: v for k, v in contents.items() if k not in ("samples", "mean", "var")}
+    if "samples" in contents:
+      return PrecomputedFrame(self._samples(path, contents), None, None, extra)
+    if "mean" not in contents:
       raise ValueError(f"{path}: expected arrays 'mean' (+ optional 'var') or 'samples'; "
                        f"found {sorted(contents)}")
-    if image is not None and tuple(np.shape(image)[:2]) != probs.shape[:2]:
-      raise ValueError(f"{path}: prediction is {probs.shape[:2]} pixels but the image is "
-                       f"{tuple(np.shape(image)[:2])}")
-    return Prediction(jnp.asarray(probs), None if var is None else jnp.asarray(var))
+    probs = _as_float("mean", contents["mean"], path)
+    var = _as_float("var", contents["var"], path) if "var" in contents else None
+    if self.channels_first:
+      probs = np.moveaxis(probs, 0, -1) if probs.ndim == 3 else probs
+      var = np.moveaxis(var, 0, -1) if var is not None and var.ndim == 3 else var
+    if probs.ndim != 3:
+      raise ValueError(f"{path}: 'mean' must have shape (H, W, K); got {probs.shape}")
+    _check_distribution(probs, "mean", path)
+    if var is not None:
+      if var.shape != probs.shape:
+        raise ValueError(f"{path}: 'var' {var.shape} must match 'mean' {probs.shape}")
+      if var.min(initial=0.0) < 0:
+        raise ValueError(f"{path}: 'var' must be non-negative")
+    return PrecomputedFrame(None, probs, var, extra)
 
   def read_samples(self, index: int) -> Optional[np.ndarray]:
     """The checked `(M, H, W, K)` float32 samples of frame `index`, or None when its file holds
     moments (`mean`, `var`) instead."""
-    path, contents = self._read(index)
-    return self._samples(path, contents) if "samples" in contents else None
+    return self.read(index).samples
 
   def _read(self, index: Optional[int]) -> tuple:
     if index is None:

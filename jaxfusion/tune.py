@@ -132,12 +132,17 @@ def soft_miou(counts: dict) -> jax.Array:
   return jnp.sum(iou, axis=-1) / jnp.maximum(jnp.sum(present, axis=-1), 1).astype(jnp.float32)
 
 
+def soft_counts(state: state_lib.MapState, gt_coords: jax.Array, gt_labels: jax.Array) -> dict:
+  """`soft_confusion` of the map's posteriors at its GT voxels (what `soft_iou_loss` reads)."""
+  posterior, valid = match_ground_truth(state, gt_coords, gt_labels)
+  return soft_confusion(posterior, jnp.asarray(gt_labels, jnp.int32), valid)
+
+
 def soft_iou_loss(state: state_lib.MapState, gt_coords: jax.Array, gt_labels: jax.Array
                   ) -> jax.Array:
   """`1 − soft mIoU` of the fused voxel posteriors over the GT voxels the map holds
   (`[] float32`): a differentiable surrogate of the map's voxel mIoU (1 when nothing scores)."""
-  posterior, valid = match_ground_truth(state, gt_coords, gt_labels)
-  return 1.0 - soft_miou(soft_confusion(posterior, jnp.asarray(gt_labels, jnp.int32), valid))
+  return 1.0 - soft_miou(soft_counts(state, gt_coords, gt_labels))
 
 
 def confusion(state: state_lib.MapState, gt_coords: jax.Array, gt_labels: jax.Array
@@ -155,8 +160,7 @@ def confusion(state: state_lib.MapState, gt_coords: jax.Array, gt_labels: jax.Ar
 
 
 def _score(state, coords, labels):
-  posterior, valid = match_ground_truth(state, coords, labels)
-  soft = soft_confusion(posterior, jnp.asarray(labels, jnp.int32), valid)
+  soft = soft_counts(state, coords, labels)
   return {"confusion": confusion(state, coords, labels),
           "loss": calibration_loss(state, coords, labels),
           "soft_iou_loss": 1.0 - soft_miou(soft),
@@ -262,8 +266,7 @@ def _sweep_first(frames, mask, camera, rules, *, capacity, num_classes, voxel_si
 
 @functools.partial(jax.jit, donate_argnums=0)
 def _sweep_more(states, frames, mask, camera, rules):
-  depth = jnp.where(mask[:, None, None], jnp.asarray(frames.depth, jnp.float32), 0.0)
-  frames = frames._replace(depth=depth)
+  frames = batch.mask_frames(frames, mask)
   return jax.vmap(lambda s, r: fusion.fuse_sequence_unchecked(s, frames, camera, r))(states,
                                                                                        rules)
 
@@ -278,7 +281,7 @@ def _sweep_scores(states, coords, labels):
   return jax.vmap(one)(states)
 
 
-def _padded_chunk(frames: fusion.Frame, size: int) -> tuple:
+def padded_chunk(frames: fusion.Frame, size: int) -> tuple:
   """A chunk padded to `size` frames of zero depth (which touch nothing), and its mask."""
   t = int(np.shape(frames.depth)[0])
   if t > size:
@@ -322,12 +325,12 @@ def sweep_chunks(chunks, camera: camera_lib.Camera, gt_coords, gt_labels,
       size = int(np.shape(frames.depth)[0])
       num_classes = int(np.shape(frames.probs)[-1])
       batch.check_batch_frames(frames, None, rules, batch_dims=1, num_classes=num_classes)
-      frames, mask = _padded_chunk(frames, size)
+      frames, mask = padded_chunk(frames, size)
       states = _sweep_first(jax.tree.map(np.asarray, frames), mask, camera, rules,
                             capacity=capacity, num_classes=num_classes,
                             voxel_size=float(voxel_size), max_probes=max_probes)
     else:
-      frames, mask = _padded_chunk(frames, size)
+      frames, mask = padded_chunk(frames, size)
       states = _sweep_more(states, jax.tree.map(np.asarray, frames), mask, camera, rules)
   if states is None:
     raise ValueError("sweep_chunks got no frames")
@@ -427,8 +430,7 @@ def sequence_loss(rule: rules_lib.FusionRule, frames: fusion.Frame, camera: came
                               max_probes=max_probes)
     if objective == "cross_entropy":
       return calibration_loss(state, coords, labels)
-    posterior, valid = match_ground_truth(state, coords, labels)
-    return soft_confusion(posterior, jnp.asarray(labels, jnp.int32), valid)
+    return soft_counts(state, coords, labels)
 
   fn = batch.map_over(one, frames_axis=batched, rule_axis=False, camera_axis=False)
   out = fn(frames, (mask, gt_coords, gt_labels), camera, rule)

@@ -21,6 +21,7 @@ them against `jax.value_and_grad` of it); each chunk is padded to the first chun
 frames of zero depth, which touch nothing.
 """
 
+import functools
 import math
 from typing import Callable, Optional, Sequence
 
@@ -43,11 +44,6 @@ def _rule(params, fixed, rule_name, aggregate):
   return rules_lib.by_name(rule_name, aggregate=aggregate, **fixed, **tune.constrain(params))
 
 
-def _masked(frames, mask):
-  return frames._replace(depth=jnp.where(mask[:, None, None],
-                                         jnp.asarray(frames.depth, jnp.float32), 0.0))
-
-
 def _first(params, fixed, frames, mask, camera, *, rule_name, aggregate, capacity, num_classes,
            voxel_size, max_probes):
   """The map after the first chunk (`init_map` inside: the prior may depend on the leaves)."""
@@ -59,7 +55,7 @@ def _first(params, fixed, frames, mask, camera, *, rule_name, aggregate, capacit
 
 def _next(state, params, fixed, frames, mask, camera, *, rule_name, aggregate):
   rule = _rule(params, fixed, rule_name, aggregate)
-  return fusion.fuse_sequence_unchecked(state, _masked(frames, mask), camera, rule)
+  return fusion.fuse_sequence_unchecked(state, batch.mask_frames(frames, mask), camera, rule)
 
 
 _first_jit = jax.jit(_first, static_argnames=_STATIC)
@@ -83,15 +79,13 @@ def _fill(like, floats):
                                       np.zeros(np.shape(x), jax.dtypes.float0) for x in leaves])
 
 
-@jax.jit
-def _statistic_ce(state, coords, labels):
-  return tune.calibration_loss(state, coords, labels)
+# A sequence's statistic per objective: its cross-entropy, or its soft confusion counts.
+_STATISTICS = {"cross_entropy": tune.calibration_loss, "soft_iou": tune.soft_counts}
 
 
-@jax.jit
-def _statistic_soft(state, coords, labels):
-  posterior, valid = tune.match_ground_truth(state, coords, labels)
-  return tune.soft_confusion(posterior, jnp.asarray(labels, jnp.int32), valid)
+@functools.partial(jax.jit, static_argnames="objective")
+def _statistic(state, coords, labels, *, objective):
+  return _STATISTICS[objective](state, coords, labels)
 
 
 def _combine(stats, objective: str):
@@ -101,18 +95,9 @@ def _combine(stats, objective: str):
   return 1.0 - tune.soft_miou(pooled)
 
 
-@jax.jit
-def _vjp_statistic_ce(state, coords, labels, g):
-  _, vjp = jax.vjp(lambda s: tune.calibration_loss(s, coords, labels), state)
-  return _floats(vjp(g)[0])
-
-
-@jax.jit
-def _vjp_statistic_soft(state, coords, labels, g):
-  def stat(s):
-    posterior, valid = tune.match_ground_truth(s, coords, labels)
-    return tune.soft_confusion(posterior, jnp.asarray(labels, jnp.int32), valid)
-  _, vjp = jax.vjp(stat, state)
+@functools.partial(jax.jit, static_argnames="objective")
+def _vjp_statistic(state, coords, labels, g, *, objective):
+  _, vjp = jax.vjp(lambda s: _STATISTICS[objective](s, coords, labels), state)
   return _floats(vjp(g)[0])
 
 
@@ -133,7 +118,7 @@ _vjp_next = jax.jit(_vjp_next, static_argnames=("rule_name", "aggregate"))
 
 
 def _padded(frames: fusion.Frame, size: int) -> tuple:
-  frames, mask = tune._padded_chunk(frames, size)   # pylint: disable=protected-access
+  frames, mask = tune.padded_chunk(frames, size)
   return jax.tree.map(jnp.asarray, frames), jnp.asarray(mask)
 
 
@@ -238,14 +223,13 @@ def tune_hparams_chunks(read_chunk: Callable, num_chunks: Sequence[int],
   checkpoint = int(checkpoint or max(1, math.ceil(math.sqrt(max(num_chunks)))))
   coords = [jnp.asarray(g["coords"], jnp.int32) for g in gt]
   labels = [jnp.asarray(g["labels"], jnp.int32) for g in gt]
-  stat = _statistic_ce if objective == "cross_entropy" else _statistic_soft
-  vjp_stat = _vjp_statistic_ce if objective == "cross_entropy" else _vjp_statistic_soft
 
   def loss_and_cotangents(params):
     finals = [seqs.forward(b, params, fixed)[0] for b in range(len(gt))]
-    stats = [stat(s, c, l) for s, c, l in zip(finals, coords, labels)]
+    stats = [_statistic(s, c, l, objective=objective) for s, c, l in zip(finals, coords, labels)]
     value, g_stats = jax.value_and_grad(lambda st: _combine(st, objective))(stats)
-    g_finals = [vjp_stat(s, c, l, g) for s, c, l, g in zip(finals, coords, labels, g_stats)]
+    g_finals = [_vjp_statistic(s, c, l, g, objective=objective)
+                for s, c, l, g in zip(finals, coords, labels, g_stats)]
     return value, g_finals
 
   optimizer = optax.adam(learning_rate)

@@ -366,8 +366,8 @@ def resolve_rule(name: str, *, beta: Optional[float] = None, aggregate: str = "s
     source = name
   if source is not None:
     family, params = learn.load_rule(source, aggregate=aggregate)
-    k = fitted_num_classes(family, params)
-    if num_classes is not None and k is not None and k != num_classes:
+    k = None if num_classes is None else fitted_for_other(family, params, num_classes)
+    if k is not None:
       raise ValueError(f"--rule {name}: its parameters are fitted for {k} classes, the data has "
                        f"{num_classes}; fit it for these classes with `jaxfusion learn-rule "
                        "--data ...`")
@@ -381,6 +381,13 @@ def resolve_rule(name: str, *, beta: Optional[float] = None, aggregate: str = "s
   if key in config_lib.ROBUST_RULES and beta is not None:
     kwargs["beta"] = beta
   return key, jf.rules.by_name(name, **kwargs), key in config_lib.ROBUST_RULES
+
+
+def fitted_for_other(family: str, params: dict, num_classes: int) -> Optional[int]:
+  """The K a fitted rule's parameters are for when it is not `num_classes`, else None (also
+  when no parameter depends on K)."""
+  k = fitted_num_classes(family, params)
+  return k if k is not None and k != num_classes else None
 
 
 def fitted_num_classes(family: str, params: dict) -> Optional[int]:

@@ -138,12 +138,7 @@ def ground_truth(args: argparse.Namespace) -> dict:
 def main(args: argparse.Namespace) -> int:
   """Runs `jaxfusion gt`: writes the GT voxel labels of one sequence."""
   out = ground_truth(args)
-
-  def write(tmp):
-    with open(tmp, "wb") as f:
-      np.savez(f, **out)
-
-  io.atomic_write(args.out, write)
+  io.save_npz(args.out, out)
   print(f"GT: {len(out['coords'])} voxels, {len(out['class_names'])} classes, from "
         f"{out['source']} → {args.out}")
   return 0

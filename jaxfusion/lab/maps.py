@@ -53,16 +53,18 @@ def _predictions(seq, args, class_map=None):
     if len(source) != len(seq):
       raise ValueError(f"--predictions has {len(source)} frames but the data has {len(seq)}")
     for t in range(len(seq)):
-      samples = None if class_map is None else source.read_samples(t)
-      if samples is None:
-        probs, var = source.predict(None, None, index=t)
+      frame = source.read(t)                           # one read of the file
       what = f"--predictions {source.files[t]} has"
-      if samples is not None:                          # remap the samples, then their moments
-        _check_source_classes(class_map, samples.shape[-1], what)
-        probs, var = moments(class_map, samples)
-      elif class_map is not None:
-        _check_source_classes(class_map, probs.shape[-1], what)
-        probs, var = remap(class_map, probs, var)
+      if frame.samples is None:
+        probs, var = frame.probs, frame.var
+        if class_map is not None:
+          _check_source_classes(class_map, probs.shape[-1], what)
+          probs, var = remap(class_map, probs, var)
+      elif class_map is None:
+        probs, var = jf.mc_moments(frame.samples)
+      else:                                            # remap the samples, then their moments
+        _check_source_classes(class_map, frame.samples.shape[-1], what)
+        probs, var = moments(class_map, frame.samples)
       yield np.asarray(probs), None if var is None else np.asarray(var)
     return
   net = frontend.FrontEnd(args.checkpoint, class_names=None)
@@ -163,12 +165,7 @@ def run_command(args: argparse.Namespace) -> int:
   if seq.labels is not None and scored:
     gt = datasets.gt_voxel_labels(seq, voxel_size=args.voxel_size)
     gt_path = stem + "_gt.npz"
-
-    def write(tmp):
-      with open(tmp, "wb") as f:
-        np.savez(f, **gt)
-
-    io.atomic_write(gt_path, write)
+    io.save_npz(gt_path, gt)
     ev = metrics.evaluate_map(voxels, gt, num_classes, ignore_label=datasets.IGNORE_LABEL)
     print(score_line(ev, names))
     print(f"GT voxel labels → {gt_path}")

@@ -373,8 +373,8 @@ def run_mesh_study_data(config: MeshStudyConfig, out_dir: str, specs, options, *
     item = sequences.load(spec, options, front_end=front_end)
     if classes is None:
       classes = item.class_names
-      k = flags.fitted_num_classes("learned", config.learned or {})
-      if config.learned is not None and k is not None and k != len(classes):
+      k = flags.fitted_for_other("learned", config.learned or {}, len(classes))
+      if config.learned is not None and k is not None:
         print(f"note: the learned rule is left out: fitted for {k} classes, the data has "
               f"{len(classes)}")
         config = dataclasses.replace(config, learned=None)

@@ -31,9 +31,8 @@ def write_predictions(root: str, item: sequences.Loaded) -> str:
     arrays = {"mean": preds["mean"][t], "det": preds["det"][t]}
     if preds["var"] is not None:
       arrays["var"] = preds["var"][t]
-    arrays = {k: np.asarray(v, np.float32) for k, v in arrays.items()}
-    io.atomic_write(os.path.join(folder, f"{int(fid):06d}.npz"),
-                    lambda tmp, arrays=arrays: np.savez(tmp, **arrays))
+    io.save_npz(os.path.join(folder, f"{int(fid):06d}.npz"),
+                {k: np.asarray(v, np.float32) for k, v in arrays.items()})
   return folder
 
 

@@ -30,7 +30,6 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxfusion import datasets
-from jaxfusion import io
 from jaxfusion import sources
 from jaxfusion.datasets import sets
 from jaxfusion.lab import frontend
@@ -119,52 +118,83 @@ def _frame_ids(sequence) -> list:
   return list(range(len(sequence))) if ids is None else [int(i) for i in ids]
 
 
-def _prediction_files(folder: str, sequence, missing: str) -> tuple:
-  """`(files per kept frame, kept frame indices)` of a folder of per-frame `.npz` files."""
+def _numbered(folder: str) -> tuple:
+  """`(files, {frame id: path} or None)` of a folder of per-frame `.npz` files: the map when
+  every file is named by frame number (`12.npz`, `000012.npz`)."""
   source = sources.precomputed_source(folder)
   stems = [os.path.splitext(os.path.basename(str(f)))[0] for f in source.files]
-  if all(s.isdigit() for s in stems):
-    by_id = {int(s): str(f) for s, f in zip(stems, source.files)}
+  if not all(s.isdigit() for s in stems):
+    return source.files, None
+  return source.files, {int(s): str(f) for s, f in zip(stems, source.files)}
+
+
+def _covered(ids, by_id: dict, folder: str, missing: str) -> list:
+  """Indices of the frame ids `ids` that have a file in `by_id`; a frame without one is an
+  error unless `missing == "skip"`."""
+  keep = [i for i, fid in enumerate(ids) if int(fid) in by_id]
+  if len(keep) < len(ids) and missing == "error":
+    absent = [fid for fid in ids if int(fid) not in by_id]
+    raise ValueError(f"--predictions {folder} has no file for {len(absent)} of the "
+                     f"{len(ids)} frames read (first: frame {absent[0]}); pass "
+                     "--missing-predictions skip to drop such frames")
+  return keep
+
+
+def _prediction_files(folder: str, sequence, missing: str) -> tuple:
+  """`(files per kept frame, kept frame indices)` of a folder of per-frame `.npz` files."""
+  files, by_id = _numbered(folder)
+  if by_id is not None:
     ids = _frame_ids(sequence)
-    keep = [i for i, fid in enumerate(ids) if fid in by_id]
-    if len(keep) < len(ids):
-      absent = [ids[i] for i in range(len(ids)) if ids[i] not in by_id]
-      if missing == "error":
-        raise ValueError(f"--predictions {folder} has no file for {len(absent)} of the "
-                         f"{len(ids)} frames (first: frame {absent[0]}); pass "
-                         "--missing-predictions skip to drop such frames")
+    keep = _covered(ids, by_id, folder, missing)
     return [by_id[ids[i]] for i in keep], keep
-  if len(source.files) != len(sequence):
-    raise ValueError(f"--predictions {folder} has {len(source.files)} files but the sequence "
+  if len(files) != len(sequence):
+    raise ValueError(f"--predictions {folder} has {len(files)} files but the sequence "
                      f"has {len(sequence)} frames (name the files by frame number to match "
                      "them to frames)")
-  return [str(f) for f in source.files], list(range(len(sequence)))
+  return [str(f) for f in files], list(range(len(sequence)))
 
 
 def _read_frame(path: str, class_map) -> tuple:
-  """`(det or None, mean, var or None)` of one precomputed file, remapped by `class_map`."""
-  src = sources.PrecomputedSource((path,))
-  samples = src.read_samples(0)
-  contents = io.read_npz(path, what="precomputed prediction file")
-  det = None
-  if "det" in contents:
-    det = np.asarray(contents["det"], np.float32)
-  if samples is not None and class_map is not None:
-    mean, var = sources.mc_moments(class_map.remap_samples(samples))
-  else:
-    pred = src.predict(None, None, index=0)
-    mean, var = pred.probs, pred.var
-    if class_map is not None:
-      _check_k(class_map, mean.shape[-1], path)
-      mean, var = class_map.remap(mean, var)
+  """`(det or None, mean, var or None)` of one precomputed file (read once), remapped by
+  `class_map` (samples before their moments, where the file holds samples)."""
+  frame = sources.PrecomputedSource((path,)).read(0)
+  det = frame.extra.get("det")
   if det is not None:
-    if det.shape[:2] != tuple(np.shape(mean)[:2]):
+    det = np.asarray(det, np.float32)
+    size = frame.probs.shape[:2] if frame.samples is None else frame.samples.shape[1:3]
+    if det.shape[:2] != tuple(size):
       raise ValueError(f"{path}: 'det' {det.shape} must be (H, W, K) as 'mean'")
-    if class_map is not None:
-      _check_k(class_map, det.shape[-1], path)
-      det = class_map.remap(det)[0]
-  return (None if det is None else np.asarray(det, np.float32), np.asarray(mean, np.float32),
-          None if var is None else np.asarray(var, np.float32))
+  if frame.samples is None:
+    return _remapped(class_map, det, frame.probs, frame.var, path)
+  if class_map is None:
+    mean, var = sources.mc_moments(frame.samples)
+  else:
+    _check_k(class_map, frame.samples.shape[-1], path)
+    mean, var = sources.mc_moments(class_map.remap_samples(frame.samples))
+  return _remapped(class_map, det, None, None, path)[0], np.asarray(mean), np.asarray(var)
+
+
+def _remapped(class_map, det, mean, var, where: str) -> tuple:
+  """`(det, mean, var)` as float32 arrays (None stays None), remapped by `class_map`."""
+  as32 = lambda x: None if x is None else np.asarray(x, np.float32)
+  if class_map is None:
+    return as32(det), as32(mean), as32(var)
+  for x in (det, mean):
+    if x is not None:
+      _check_k(class_map, np.shape(x)[-1], where)
+  if mean is not None:
+    mean, var = class_map.remap(mean, var)
+  if det is not None:
+    det = class_map.remap(det)[0]
+  return as32(det), as32(mean), as32(var)
+
+
+def _check_classes(name: str, class_names, k: int) -> None:
+  """Refuses predictions of K classes for GT of another label space."""
+  if class_names and len(class_names) != k:
+    raise ValueError(f"{name}: the predictions have {k} classes but the GT's label space has "
+                     f"{len(class_names)} ({', '.join(class_names)}); give --class-map, or "
+                     "--label-space for the predictions' classes")
 
 
 def _check_k(class_map, k: int, path: str) -> None:
@@ -184,21 +214,16 @@ def precomputed(folder: str, sequence, *, class_map=None, missing: str = "error"
   if not files:
     raise ValueError(f"--predictions {folder} covers none of the sequence's frames")
   h, w = sequence.image_size
-  dets, means, variances = [], [], []
+  frames = []
   for path in tqdm(files, desc="predictions", leave=False):
-    det, mean, var = _read_frame(path, class_map)
+    frames.append(_read_frame(path, class_map))
+    mean = frames[-1][1]
     if mean.shape[:2] != (h, w):
       raise ValueError(f"{path}: the prediction is {mean.shape[0]}x{mean.shape[1]} pixels but "
                        f"the sequence's depth is {h}x{w}")
-    dets.append(det)
-    means.append(mean)
-    variances.append(var)
-  if len({m.shape[-1] for m in means}) != 1:
+  if len({m.shape[-1] for _, m, _ in frames}) != 1:
     raise ValueError(f"--predictions {folder}: the files disagree on the number of classes")
-  mean = np.stack(means)
-  var = None if any(v is None for v in variances) else np.stack(variances)
-  det = mean if any(d is None for d in dets) else np.stack(dets)
-  return {"det": det, "mean": mean, "var": var}, keep
+  return _stack(frames), keep
 
 
 def _front_end_predictions(front_end, spec, sequence, options: DataOptions) -> dict:
@@ -207,13 +232,9 @@ def _front_end_predictions(front_end, spec, sequence, options: DataOptions) -> d
   preds = frontend.cached_predictions(front_end, sequence, layout_seed=seed, shift=shift,
                                       num_samples=options.num_samples, mc_seed=options.mc_seed,
                                       cache_dir=options.cache_dir or "outputs/cache")
-  if options.class_map is not None:
-    cm = options.class_map
-    _check_k(cm, preds["mean"].shape[-1], f"the front end {front_end.model_id}")
-    mean, var = cm.remap(preds["mean"], preds["var"])
-    preds = {"det": np.asarray(cm.remap(preds["det"])[0]), "mean": np.asarray(mean),
-             "var": np.asarray(var)}
-  return preds
+  det, mean, var = _remapped(options.class_map, preds["det"], preds["mean"], preds["var"],
+                             f"the front end {front_end.model_id}")
+  return {"det": det, "mean": mean, "var": var}
 
 
 # `load(..., front_end=SIMULATED)`: the simulated noisy network drawn from the GT labels.
@@ -281,10 +302,7 @@ def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Load
     source = f"network {front_end.model_id} (MC dropout, M={options.num_samples})"
   k = int(preds["mean"].shape[-1])
   class_names = tuple(sequence.class_names)
-  if class_names and len(class_names) != k:
-    raise ValueError(f"{name}: the predictions have {k} classes but the GT's label space has "
-                     f"{len(class_names)} ({', '.join(class_names)}); give --class-map, or "
-                     "--label-space for the predictions' classes")
+  _check_classes(name, class_names, k)
   voxels = None
   if gt:
     if sequence.labels is None:
@@ -347,7 +365,13 @@ class Streamed:
     if self._loaded is None:
       if options.predictions is not None:
         self._folder = sets.predictions_folder(options.predictions, self.spec)
-        self._files = _numbered_files(self._folder)
+        files, self._files = _numbered(self._folder)
+        if self._files is None:
+          bad = next(f for f in files if not os.path.splitext(os.path.basename(str(f)))[0]
+                     .isdigit())
+          raise ValueError(f"--predictions {self._folder}: {os.path.basename(str(bad))} is not "
+                           "named by frame number (e.g. 000012.npz for frame 12), which a "
+                           "streamed sequence needs")
         self.source = f"precomputed predictions in {self._folder}"
       elif front_end is None or front_end == SIMULATED:
         raise ValueError(f"{self.spec}: streaming needs --predictions or a network front end")
@@ -358,28 +382,27 @@ class Streamed:
 
   def _raw_chunks(self, size: int):
     if self._loaded is not None:
-      seq = self._loaded.sequence
-      for lo in range(0, len(seq), size):
-        idx = list(range(lo, min(len(seq), lo + size)))
-        yield seq.subset(idx), {k: None if v is None else v[idx]
-                                for k, v in self._loaded.predictions.items()}, idx
+      for lo in range(0, len(self._loaded.sequence), size):
+        yield (*self._loaded_chunk(lo, size), None)
       return
     offset = 0
     for chunk in self.stream.chunks(size):
       yield chunk, None, list(range(offset, offset + len(chunk)))
       offset += len(chunk)
 
+  def _loaded_chunk(self, lo: int, size: int) -> tuple:
+    """Frames `lo … lo + size` of a sequence loaded whole, with their predictions."""
+    seq = self._loaded.sequence
+    idx = list(range(lo, min(len(seq), lo + size)))
+    return seq.subset(idx), {k: None if v is None else v[idx]
+                             for k, v in self._loaded.predictions.items()}
+
   def _keep(self, chunk) -> list:
     """Indices of a chunk's frames that have a prediction file (the rest: error or skip)."""
     if self._folder is None:
       return list(range(len(chunk)))
-    ids = chunk.info.get("frame_ids") or []
-    keep = [i for i, fid in enumerate(ids) if int(fid) in self._files]
-    if len(keep) < len(chunk) and self.options.missing == "error":
-      absent = next(fid for fid in ids if int(fid) not in self._files)
-      raise ValueError(f"--predictions {self._folder} has no file for frame {absent}; pass "
-                       "--missing-predictions skip to drop such frames")
-    return keep
+    return _covered(chunk.info.get("frame_ids") or [], self._files, self._folder,
+                    self.options.missing)
 
   def _size(self) -> int:
     if self._chunk is not None:
@@ -436,10 +459,7 @@ class Streamed:
     has a prediction (random access, for the backward passes of `tune_chunks`)."""
     size = self._size()
     if self._loaded is not None:
-      seq = self._loaded.sequence
-      idx = list(range(k * size, min(len(seq), (k + 1) * size)))
-      return seq.subset(idx), {key: None if v is None else v[idx]
-                               for key, v in self._loaded.predictions.items()}
+      return self._loaded_chunk(k * size, size)
     chunk = self.stream._read(k * size, size)   # pylint: disable=protected-access
     if chunk is None or not len(chunk):
       return None
@@ -470,38 +490,16 @@ class Streamed:
       det = self.front_end.deterministic(chunk.rgb[t])
       mean, var = self.front_end.mc(chunk.rgb[t], num_samples=self.options.num_samples,
                                     key=jax.random.fold_in(key, position))
-      cm = self.options.class_map
-      if cm is not None:
-        _check_k(cm, mean.shape[-1], f"the front end {self.front_end.model_id}")
-        mean, var = (np.asarray(a) for a in cm.remap(mean, var))
-        det = np.asarray(cm.remap(det)[0])
-      out.append((det, mean, var))
+      out.append(_remapped(self.options.class_map, det, mean, var,
+                           f"the front end {self.front_end.model_id}"))
     return _stack(out)
 
   def _check(self, preds: dict) -> None:
-    k = int(preds["mean"].shape[-1])
-    if self.class_names and len(self.class_names) != k:
-      raise ValueError(f"{self.name}: the predictions have {k} classes but the GT's label space "
-                       f"has {len(self.class_names)} ({', '.join(self.class_names)}); give "
-                       "--class-map, or --label-space for the predictions' classes")
+    _check_classes(self.name, self.class_names, int(preds["mean"].shape[-1]))
     if tuple(preds["mean"].shape[1:3]) != tuple(self.image_size):
       raise ValueError(f"{self.name}: the predictions are {preds['mean'].shape[1]}x"
                        f"{preds['mean'].shape[2]} pixels but the depth is "
                        f"{self.image_size[0]}x{self.image_size[1]}")
-
-
-def _numbered_files(folder: str) -> dict:
-  """`{frame id: path}` of a folder of per-frame `.npz` files named by frame number."""
-  src = sources.precomputed_source(folder)
-  out = {}
-  for f in src.files:
-    stem = os.path.splitext(os.path.basename(str(f)))[0]
-    if not stem.isdigit():
-      raise ValueError(f"--predictions {folder}: {os.path.basename(str(f))} is not named by "
-                       "frame number (e.g. 000012.npz for frame 12), which a streamed "
-                       "sequence needs")
-    out[int(stem)] = str(f)
-  return out
 
 
 def _stack(frames: list) -> dict:

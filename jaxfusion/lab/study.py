@@ -72,6 +72,7 @@ from jaxfusion.observations import HEADROOM
 from jaxfusion.observations import alpha_of_prediction
 from jaxfusion.observations import classify_voxels  # pylint: disable=unused-import
 from jaxfusion.observations import classify_votes
+from jaxfusion.observations import voxel_votes
 from jaxfusion.observations import feature_histograms
 from jaxfusion.observations import pixel_observations
 
@@ -204,14 +205,6 @@ class StudyConfig:
 
 
 # --- per-sequence analysis ---------------------------------------------------------------------
-def _fuse(depth, T_world_cam, camera, probs, var, rule, config, rgb=None):
-  state = jf.init_map(capacity=config.run.capacity, num_classes=probs.shape[-1],
-                      voxel_size=config.run.voxel_size, rule=rule)
-  frames = jf.Frame(np.asarray(depth, np.float32), np.asarray(T_world_cam, np.float32), probs,
-                    None if var is None else var, rgb if rule.context else None)
-  return jf.read_map(jf.fuse_sequence(state, frames, camera, rule))
-
-
 def _calibration(voxels, gt_coords, gt_labels) -> np.ndarray:
   """`metrics.calibration_bins` of the map's posteriors at the GT voxels it holds."""
   map_index, gt_index = metrics.match_voxels(voxels["coords"], gt_coords)
@@ -293,10 +286,7 @@ class SequenceAnalysis:
                              voxel_size=config.run.voxel_size)
     observed = obs["gt_index"] >= 0
     right = observed & (obs["pred"] == self.gt_labels[np.maximum(obs["gt_index"], 0)])
-    keep = observed.reshape(-1)
-    self.votes += np.bincount(obs["gt_index"].reshape(-1)[keep] * k
-                              + obs["pred"].reshape(-1)[keep],
-                              minlength=self.votes.size).reshape(self.votes.shape)
+    self.votes += voxel_votes(obs["gt_index"], obs["pred"], len(self.gt_labels), k)
     alpha = alpha_of_prediction(predictions["var"].reshape(right.shape + (k,)), obs["pred"])
     self.alpha_hist += np.stack([np.histogram(alpha[right], ALPHA_EDGES)[0],
                                  np.histogram(alpha[observed & ~right], ALPHA_EDGES)[0]]
@@ -786,15 +776,15 @@ def fitted_for(config: StudyConfig, num_classes: int) -> StudyConfig:
   for key, family, params in ((LEARNED, "learned", config.learned),
                               (GLFS, "glfs", config.glfs)):
     if params is not None:
-      k = flags.fitted_num_classes(family, params)
-      if k is not None and k != num_classes:
+      k = flags.fitted_for_other(family, params, num_classes)
+      if k is not None:
         print(f"note: {display(key)} is left out: its parameters are fitted for {k} classes, "
               f"the data has {num_classes} (fit them with `jaxfusion learn-rule --data ...` "
               f"and pass --{'learned-rule' if key == LEARNED else 'glfs'} PARAMS_JSON)")
         changes[key] = None
   for tag, params in config.variants:
-    k = flags.fitted_num_classes("learned", params)
-    if k is not None and k != num_classes:
+    k = flags.fitted_for_other("learned", params, num_classes)
+    if k is not None:
       print(f"note: variant {tag} is left out: fitted for {k} classes, the data has "
             f"{num_classes}")
     else:

@@ -120,14 +120,21 @@ def load_data_sequence(spec, options, *, front_end=None) -> dict:
   from jaxfusion.lab import sequences  # pylint: disable=import-outside-toplevel
   item = sequences.load(spec, options, front_end=front_end)
   seq, preds = item.sequence, item.predictions
-  frames = fusion.Frame(np.asarray(seq.depth, np.float32), np.asarray(seq.T_world_cam, np.float32),
-                        np.asarray(preds["mean"], np.float32),
-                        None if preds["var"] is None else np.asarray(preds["var"], np.float32),
-                        np.asarray(seq.rgb, np.uint8))
-  return {"name": item.name, "frames": frames, "camera": seq.camera, "gt": item.gt,
+  return {"name": item.name, "frames": frames_of(seq, preds), "camera": seq.camera, "gt": item.gt,
           "num_classes": int(preds["mean"].shape[-1]), "source": item.source,
           "class_names": item.class_names,
           "capacity": data_capacity(item.gt)}
+
+
+def frames_of(sequence, predictions: dict, *, rgb: bool = True) -> fusion.Frame:
+  """The Frame (leading time axis) of a sequence's depth and poses with its predictions'
+  MC mean and variance, and (with `rgb`) its colour images."""
+  var = predictions["var"]
+  return fusion.Frame(np.asarray(sequence.depth, np.float32),
+                      np.asarray(sequence.T_world_cam, np.float32),
+                      np.asarray(predictions["mean"], np.float32),
+                      None if var is None else np.asarray(var, np.float32),
+                      np.asarray(sequence.rgb, np.uint8) if rgb else None)
 
 
 # Map slots per GT voxel for a researcher's data: its maps also hold the voxels of pixels whose
@@ -165,9 +172,7 @@ def stream_sweep(spec, options, betas, *, rule: str = "D+R", aggregate: str = "s
   gt = item.gt()
   stacked = rules_lib.stack([rules_lib.by_name(rule, beta=float(b), aggregate=aggregate)
                              for b in betas])
-  chunks = (fusion.Frame(np.asarray(c.depth, np.float32), np.asarray(c.T_world_cam, np.float32),
-                         p["mean"], p["var"], np.asarray(c.rgb, np.uint8))
-            for c, p in item.chunks())
+  chunks = (frames_of(c, p) for c, p in item.chunks())
   out = tune_lib.sweep_chunks(chunks, item.camera, gt["coords"], gt["labels"], stacked,
                               capacity=data_capacity(gt),
                               voxel_size=options.voxel_size)
@@ -582,7 +587,7 @@ def add_tune_beta_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--stream", action="store_true",
                       help="with --calibration-data: read the calibration sequences from disk a "
                            "chunk at a time and differentiate chunk by chunk (bounded memory, "
-                           "the same fit, about 3 passes over the data a step)")
+                           "the same fit, about 4 reads of the data a step)")
   add_data_args(parser, calibration=True)
   parser.set_defaults(func=tune_beta_command)
   return parser
@@ -725,8 +730,7 @@ def tune_beta_command(args) -> int:
     if args.stream:
       return _tune_beta_streamed(args, given["--calibration-data"], options, front_end, train,
                                  held_specs, load_held)
-    cal = batch_of([load_data_sequence(s, options, front_end=front_end)
-                    for s in given["--calibration-data"]])
+    cal = load_data_batch(given["--calibration-data"], options, front_end=front_end)
     cal.update(name=", ".join(cal["names"]), gt={"coords": cal["coords"],
                                                   "labels": cal["labels"]})
   else:
@@ -783,9 +787,7 @@ def streamed_calibration(specs, options, *, front_end=None) -> tuple:
       return fusion.Frame(np.zeros((1, h, w), np.float32), np.eye(4, dtype=np.float32)[None],
                           np.full((1, h, w, k), 1.0 / k, np.float32),
                           np.zeros((1, h, w, k), np.float32))
-    c, p = got
-    return fusion.Frame(np.asarray(c.depth, np.float32), np.asarray(c.T_world_cam, np.float32),
-                        p["mean"], p["var"])
+    return frames_of(*got, rgb=False)
 
   return (read_chunk, [i.num_chunks for i in items], size, items[0].camera, gts,
           [i.name for i in items], k)

@@ -113,8 +113,11 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   assert ("learned:ctx", "bayes") in more.comparisons and (study.LEARNED, study.GLFS) in \
       more.comparisons and more.comparisons[-1] == (study.ORACLE, "bayes")
   res = study.analyze_sequence(seq, preds, gt, more)
-  bayes_mean = study._fuse(seq.depth, seq.T_world_cam, seq.camera, preds["mean"], None,
-                           jf.rules.bayes(), more)
+  state = jf.init_map(capacity=more.run.capacity, num_classes=K,
+                      voxel_size=more.run.voxel_size, rule=jf.rules.bayes())
+  bayes_mean = jf.read_map(jf.fuse_sequence(state, jf.Frame(seq.depth, seq.T_world_cam,
+                                                            preds["mean"]), seq.camera,
+                                            jf.rules.bayes()))
   np.testing.assert_array_equal(
       res["confusion"][study.GLFS],
       jf.metrics.evaluate_map(bayes_mean, gt, K)["confusion"])
