@@ -7,7 +7,8 @@ call) and its meshes (`mesh`, marching cubes). Batches, sweeps and tuning build 
 (`batch`, `tune`); the synthetic world and real-data readers live in `jaxfusion.datasets`, the
 simulated front ends (independent or view-dependent errors) in `jaxfusion.simulation`, the
 analyses of a front end's pixel observations of GT voxels in `jaxfusion.observations`, map files
-in `jaxfusion.io`. The equations are in docs/equations.md.
+in `jaxfusion.io`; free-space clearing (`free_space`) and exact de-integration and
+re-integration of frames (`deintegration`) for a world or poses that change. The equations are in docs/equations.md.
 
 This package is the library. The application (commands, studies, figures, the viewer) is
 `jaxfusion.lab`, which this package never imports.
@@ -16,6 +17,8 @@ This package is the library. The application (commands, studies, figures, the vi
 from jaxfusion import batch
 from jaxfusion import context
 from jaxfusion import datasets
+from jaxfusion import deintegration
+from jaxfusion import free_space
 from jaxfusion import io
 from jaxfusion import learn
 from jaxfusion import mesh
@@ -31,6 +34,9 @@ from jaxfusion.batch import rule_grid
 from jaxfusion.batch import stack_sequences
 from jaxfusion.camera import Camera
 from jaxfusion.classmap import ClassMap
+from jaxfusion.deintegration import reintegrate
+from jaxfusion.deintegration import unfuse_frame
+from jaxfusion.free_space import FreeSpaceConfig
 from jaxfusion.fusion import Frame
 from jaxfusion.fusion import fuse_frame
 from jaxfusion.fusion import fuse_sequence
@@ -62,7 +68,7 @@ from jaxfusion.tune import tune_hparams
 __version__ = "0.1.0"
 
 __all__ = sorted([
-    "Camera", "ClassMap", "EMPTY", "Frame", "FusionRule", "MapFullWarning", "MapState", "Mapper",
+    "Camera", "ClassMap", "EMPTY", "Frame", "FreeSpaceConfig", "FusionRule", "MapFullWarning", "MapState", "Mapper",
     "Mesh", "QueryResult", "TSDFConfig", "TSDFState", "extract_mesh", "init_tsdf", "label_mesh",
     "mesh",
     "mesh_by_class", "tsdf", "batch", "context", "calibration_loss", "capacity_for", "datasets",
@@ -70,4 +76,5 @@ __all__ = sorted([
     "fuse_frame", "fuse_sequence", "fuse_sweep", "grow_map", "init_map", "io", "learn",
     "make_mesh", "map_stats", "mc_moments", "metrics", "query", "read_map", "rule_grid", "rules",
     "sources", "stack_sequences", "sweep_beta", "tune", "tune_hparams", "voxel_posteriors",
+    "deintegration", "free_space", "reintegrate", "unfuse_frame",
 ])

@@ -25,6 +25,7 @@ import numpy as np
 
 from jaxfusion import camera as camera_lib
 from jaxfusion import context as context_lib
+from jaxfusion import free_space as free_space_lib
 from jaxfusion import hashing
 from jaxfusion import numerics
 from jaxfusion import tsdf
@@ -106,7 +107,8 @@ def _pixel_blocks(n: int) -> int:
   return 1
 
 
-def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
+def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable,
+                 kernel: Optional[Callable] = None):
   """The rule's update of the touched rows, as `f(rows, probs, var, ctx, hparams, segment,
   counts, slot_of_group, num_groups, index) -> rows`, where `observe(probs, var, ctx, hparams)`
   gives the per-pixel terms of `(n, K)` inputs and `(n, F)` context (ctx None when the rule
@@ -118,7 +120,11 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
   cannot go through a while loop whose trip count depends on the data, so the VJP is that of
   `dense`, the same update written at the static size P (all possible groups) — slower, but only
   paid when differentiating.
+
+  `kernel(row, observation, hparams) -> row` is the per-voxel update, `rule.update` by default
+  (de-integration passes `rule.remove`).
   """
+  kernel = rule.update if kernel is None else kernel
 
   def apply(rows, hparams, sums, maxes, counts, slots):
     """Applies reduced observations (raw per-group sums and maxes) at `slots`."""
@@ -131,7 +137,7 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable):
     observation = rules_base.VoxelObservation(sums, maxes, jnp.where(ok, counts, 1.0))
     read_slot = jnp.where(ok, slots, 0)
     old = jax.tree.map(lambda r: r[read_slot], rows)
-    new = jax.vmap(rule.update, in_axes=(0, 0, None))(old, observation, hparams)
+    new = jax.vmap(kernel, in_axes=(0, 0, None))(old, observation, hparams)
     return jax.tree.map(lambda r, x: r.at[slots].set(x.astype(r.dtype), mode="drop"), rows, new)
 
   def dense(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index):
@@ -225,18 +231,30 @@ def fuse_frame_unchecked(state: MapState, frame: Frame, camera: camera_lib.Camer
   return _fuse_frame_of(state, frame, camera, rule, None)
 
 
-def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
-                   rule: rules_base.FusionRule, index) -> MapState:
-  """Fuses one frame: `frames` itself (`index` None), or frame `index` (traced int) of a stack
-  whose fields carry a leading T axis, read in place (`fuse_sequence_unchecked`)."""
+class _Pixels(NamedTuple):
+  """One frame's pixels as the per-voxel stage reads them (`_frame_pixels`)."""
+  depth: jax.Array      # (H, W) float32
+  pose: jax.Array       # (4, 4) the frame's T_world_cam
+  keys: jax.Array       # (N, 3) int32 voxel keys
+  valid: jax.Array      # (N,) bool valid pixels (§2.1)
+  probs: jax.Array      # (N, K) or (T, N, K) float32 (a stack is read in place)
+  var: jax.Array        # like probs (probs again when the frame has no variance)
+  ctx: Optional[jax.Array]   # (N, F) context features, or None
+  observe: Callable     # observe(p, v, c, hparams) -> PixelTerms of a block of pixels
+
+
+def _frame_pixels(state: MapState, frames: Frame, camera: camera_lib.Camera,
+                  rule: rules_base.FusionRule, index) -> _Pixels:
+  """Keys, valid pixels, guarded per-pixel terms and context of one frame (`frames` itself, or
+  frame `index` of a stack), shared by fusing and de-integrating (`jaxfusion.deintegration`)."""
   height, width, num_classes = frames.probs.shape[-3:]
   n = height * width
   stack = lambda x: jnp.asarray(x, jnp.float32).reshape(np.shape(x)[:-3] + (n, num_classes))
 
   # Geometry: every pixel → world point → voxel key, in one fused elementwise pass.
   depth = jnp.asarray(_frame_of(frames.depth, index), jnp.float32)
-  keys, in_range = camera_lib.depth_to_voxel_keys(depth, _frame_of(frames.T_world_cam, index),
-                                                  camera, state.voxel_size)
+  pose = _frame_of(frames.T_world_cam, index)
+  keys, in_range = camera_lib.depth_to_voxel_keys(depth, pose, camera, state.voxel_size)
 
   # Valid pixels: positive finite depth, finite probabilities (and variances if given).
   probs = stack(frames.probs)
@@ -251,16 +269,6 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
   # vectorise (it doubled the cost of the per-pixel logarithms). It runs inside `observe`, block
   # by block, so the guarded copies are never materialised either.
   has_var = frames.var is not None
-
-  # The geometry layer, when the map has one, integrates the same depth and pose in the same
-  # program; with `gate_semantics` only pixels on the surface it held before the frame fuse
-  # semantics (docs/equations.md §8.6).
-  geometry = state.geometry
-  if geometry is not None:
-    pose = _frame_of(frames.T_world_cam, index)
-    if geometry.gate_semantics:
-      valid = valid & tsdf.surface_gate(geometry, depth, pose, camera)
-    geometry = tsdf.integrate_unchecked(geometry, depth, pose, camera)
 
   # Per-pixel context (docs/equations.md §2.5), only for rules that ask for it: a rule with an
   # empty `context` is traced exactly as before.
@@ -277,6 +285,13 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
       return jax.vmap(rule.observe, in_axes=(0, 0, None))(p, v, hparams)
     return jax.vmap(rule.observe, in_axes=(0, 0, 0, None))(p, v, c, hparams)
 
+  return _Pixels(depth, pose, keys, valid, probs, var if has_var else probs, ctx, observe)
+
+
+def _pixel_groups(keys, valid):
+  """`(groups, counts, chunk)`: the frame's pixels grouped per voxel, `first_pixel` padded to
+  whole chunks, and the valid pixels of each group `(P,) float32`."""
+  n = keys.shape[0]
   groups = group_pixels(keys, valid)
   chunk = min(_CHUNK, n)
   padded = -(-n // chunk) * chunk        # whole chunks, so that no dynamic slice is clamped
@@ -286,12 +301,40 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
   counts = jax.ops.segment_sum(valid.astype(jnp.float32), groups.segment,
                                num_segments=padded)
   counts = jnp.where(jnp.arange(padded) < groups.num_groups, counts, 0.0)
+  return groups, counts, chunk
+
+
+def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
+                   rule: rules_base.FusionRule, index) -> MapState:
+  """Fuses one frame: `frames` itself (`index` None), or frame `index` (traced int) of a stack
+  whose fields carry a leading T axis, read in place (`fuse_sequence_unchecked`)."""
+  px = _frame_pixels(state, frames, camera, rule, index)
+  valid = px.valid
+
+  # The geometry layer, when the map has one, integrates the same depth and pose in the same
+  # program; with `gate_semantics` only pixels on the surface it held before the frame fuse
+  # semantics (docs/equations.md §8.6).
+  geometry = state.geometry
+  if geometry is not None:
+    if geometry.gate_semantics:
+      valid = valid & tsdf.surface_gate(geometry, px.depth, px.pose, camera)
+    geometry = tsdf.integrate_unchecked(geometry, px.depth, px.pose, camera)
+
+  # Free space (docs/equations.md §10), when the map has the layer: the stored voxels the depth
+  # shows as free, marked before this frame's voxels are placed.
+  if state.free_space is not None:
+    free = free_space_lib.mark(state, px.depth, px.pose, camera)
+
+  groups, counts, chunk = _pixel_groups(px.keys, valid)
 
   # Place the frame's voxels in the map, then reduce the rule's per-pixel terms per voxel and
   # update each touched voxel once.
-  state, slot_of_group = _place_groups(state, keys, groups, counts, chunk)
-  rows = _rows_update(rule, chunk, observe)(
-      state.rows, probs, var if has_var else probs, ctx, rule.hparams, groups.segment, counts,
+  state, slot_of_group = _place_groups(state, px.keys, groups, counts, chunk)
+  if state.free_space is not None:
+    state = free_space_lib.apply(state, free, slot_of_group, counts,
+                                 rule.init(state.num_classes, rule.hparams))
+  rows = _rows_update(rule, chunk, px.observe)(
+      state.rows, px.probs, px.var, px.ctx, rule.hparams, groups.segment, counts,
       slot_of_group, groups.num_groups, index)
   return state.replace(rows=rows, geometry=geometry)
 

@@ -265,6 +265,9 @@ def save_map(path: str, state: MapState, rule: rules_lib.FusionRule, *,
     meta["geometry"] = dataclasses.asdict(state.geometry.config())
     for name in GEOMETRY_ARRAYS:
       arrays[f"geometry/{name}"] = np.asarray(getattr(state.geometry, name))
+  if state.free_space is not None:
+    meta["free_space"] = dataclasses.asdict(state.free_space.config)
+    arrays["free_space/log_odds"] = np.asarray(state.free_space.log_odds)
   if poses is not None:
     arrays["poses"] = poses
   arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
@@ -304,9 +307,14 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
     geometry = meta.get("geometry")
     if geometry is not None:
       geometry = tsdf_lib.TSDFConfig(**geometry)
+    free = meta.get("free_space")
+    if free is not None:
+      from jaxfusion import free_space as free_space_lib
+      free = free_space_lib.FreeSpaceConfig(**free)
     state = init_map(capacity=int(meta["capacity"]), num_classes=int(meta["num_classes"]),
                      voxel_size=float(data["voxel_size"]), rule=rule,
-                     max_probes=int(meta["max_probes"]), geometry=geometry)
+                     max_probes=int(meta["max_probes"]), geometry=geometry,
+                     free_space=free if free is not None else False)
     names = meta.get("class_names")
     if names is not None and len(names) != state.num_classes:
       raise ValueError(f"{len(names)} class names for {state.num_classes} classes")
@@ -319,6 +327,8 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
   if state.geometry is not None:
     expected.update({f"geometry/{name}": np.asarray(getattr(state.geometry, name))
                      for name in GEOMETRY_ARRAYS})
+  if state.free_space is not None:
+    expected["free_space/log_odds"] = np.asarray(state.free_space.log_odds)
   stored_rows = {k for k in data if k.startswith("rows/")}
   if stored_rows != {k for k in expected if k.startswith("rows/")}:
     raise BadFileError(f"{path} is not a {MAP_FILE} (rows {sorted(stored_rows)} do not match "
@@ -337,6 +347,9 @@ def load_map(path: str) -> tuple[MapState, rules_lib.FusionRule, dict]:
   if state.geometry is not None:
     state = state.replace(geometry=state.geometry.replace(
         **{name: jnp.asarray(data[f"geometry/{name}"]) for name in GEOMETRY_ARRAYS}))
+  if state.free_space is not None:
+    state = state.replace(free_space=state.free_space.replace(
+        log_odds=jnp.asarray(data["free_space/log_odds"])))
   return state, rule, meta
 
 

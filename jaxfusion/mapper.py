@@ -17,6 +17,7 @@ Example:
 Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
+import collections
 from typing import Optional
 
 import jax
@@ -24,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfusion import camera as camera_lib
+from jaxfusion import deintegration
 from jaxfusion import fusion
 from jaxfusion import grouping
 from jaxfusion import hashing
@@ -84,6 +86,11 @@ class Mapper:
     max_probes: the map's probe bound.
     geometry: a `tsdf.TSDFConfig` to carry a geometry layer (None: semantics only); its block
       table grows by the same rule, `grow_at` of its capacity, up to 2**24 blocks.
+    free_space: free-space clearing (`init_map`'s option, docs/equations.md §10).
+    keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
+      `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
+      A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
+      about 33 MB).
 
   Attributes:
     state: the current MapState (a new object after every call; do not keep old ones, they are
@@ -91,22 +98,30 @@ class Mapper:
     growths: `[(frames_fused, old_capacity, new_capacity)]`, one entry per growth.
     geometry_growths: the same for the geometry layer's block table.
     frames_fused: frames fused so far.
+    kept: the frames held, `{frame_id: (Frame, Camera)}` in the order fused (oldest first).
   """
 
   def __init__(self, rule: rules_base.FusionRule, *, num_classes: int,
                voxel_size: float = 0.1, capacity: int = 2**16, grow_at: float = 0.5,
                max_capacity: int = 2**30,
-               max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None):
+               max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None,
+               free_space=False, keep_frames: int = 0):
     if not 0.0 < grow_at < 1.0:
       raise ValueError(f"grow_at must lie in (0, 1); got {grow_at}")
     if not isinstance(max_capacity, (int, np.integer)) or max_capacity > 2**30:
       raise ValueError(f"max_capacity must be an int ≤ 2**30; got {max_capacity}")
+    if isinstance(keep_frames, bool) or not isinstance(keep_frames, (int, np.integer)) or (
+        keep_frames < 0):
+      raise ValueError(f"keep_frames must be an integer ≥ 0; got {keep_frames!r}")
     self.rule = rule
+    self.keep_frames = int(keep_frames)
+    self.kept = collections.OrderedDict()
+    self._free_space = free_space
     self.grow_at = float(grow_at)
     self.max_capacity = int(max_capacity)
     self.state = state_lib.init_map(capacity=capacity, num_classes=num_classes,
                                     voxel_size=voxel_size, rule=rule, max_probes=max_probes,
-                                    geometry=geometry)
+                                    geometry=geometry, free_space=free_space)
     # The most blocks one call has added so far: the geometry layer's cheap room check.
     self._blocks_per_call = None
     if self.state.capacity > self.max_capacity:
@@ -161,23 +176,135 @@ class Mapper:
       self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
       self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
 
-  def fuse(self, frame: fusion.Frame, camera: camera_lib.Camera) -> state_lib.MapState:
-    """Fuses one frame (`fuse_frame`), growing the map first if it could overfill."""
+  def fuse(self, frame: fusion.Frame, camera: camera_lib.Camera, *,
+           frame_id=None) -> state_lib.MapState:
+    """Fuses one frame (`fuse_frame`), growing the map first if it could overfill.
+
+    `frame_id` names the frame for `unfuse` / `reintegrate` when frames are kept (default: the
+    number of frames fused before it)."""
     if not isinstance(frame, fusion.Frame):
       raise TypeError(f"frame must be a jaxfusion.Frame; got {type(frame).__name__}")
     depth = np.asarray(frame.depth)
     if depth.ndim != 2:
       raise ValueError(f"depth must have shape (H, W); got {depth.shape} (use fuse_sequence "
                        "for a stack)")
+    frame_id = self._new_id(frame_id, self.frames_fused)
     self._ensure_room(depth[None], np.asarray(frame.T_world_cam)[None], camera)
     self.state = fusion.fuse_frame(self.state, frame, camera, self.rule)
     self.frames_fused += 1
+    self._keep(frame_id, frame, camera)
+    return self.state
+
+  # --- kept frames: de-integration, re-integration, rebuild (docs/equations.md §11.3) -------
+  def _new_id(self, frame_id, default):
+    frame_id = default if frame_id is None else frame_id
+    if self.keep_frames and frame_id in self.kept:
+      raise ValueError(f"frame id {frame_id!r} is already held by this Mapper")
+    return frame_id
+
+  def _keep(self, frame_id, frame: fusion.Frame, camera) -> None:
+    if not self.keep_frames:
+      return
+    host = fusion.Frame(*(None if x is None else np.array(x) for x in frame))
+    self.kept[frame_id] = (host, camera)
+    while len(self.kept) > self.keep_frames:
+      self.kept.popitem(last=False)
+
+  def _held(self, frame_ids) -> list:
+    if not self.keep_frames:
+      raise ValueError("this Mapper keeps no frames: make it with keep_frames=N to unfuse or "
+                       "reintegrate them")
+    ids = list(frame_ids)
+    for frame_id in ids:
+      if frame_id not in self.kept:
+        raise ValueError(f"frame id {frame_id!r} is not held by this Mapper (it holds the last "
+                         f"{len(self.kept)} of {self.frames_fused} frames fused, keep_frames="
+                         f"{self.keep_frames})")
+    if len(set(ids)) != len(ids):
+      raise ValueError(f"frame ids repeat: {ids}")
+    return ids
+
+  def unfuse(self, frame_id) -> state_lib.MapState:
+    """Takes a kept frame out of the map exactly (`deintegration.unfuse_frame`) and forgets it.
+
+    Raises:
+      ValueError: a frame id not held, or a rule / map that cannot be de-integrated.
+    """
+    self._held([frame_id])
+    deintegration.check_invertible(self.state, self.rule)
+    frame, camera = self.kept[frame_id]
+    self.state = deintegration.unfuse_frame(self.state, frame, camera, self.rule)
+    del self.kept[frame_id]
+    self.frames_fused -= 1
+    return self.state
+
+  def reintegrate(self, frame_ids, new_poses) -> state_lib.MapState:
+    """Moves kept frames to corrected poses (a loop closure): each is de-integrated at the pose
+    it was fused with and fused again at its new one (`deintegration.reintegrate`, one call per
+    camera), after growing the map if the new poses could overfill it. The kept frames then
+    carry their new poses.
+
+    Args:
+      frame_ids: ids of kept frames, T of them.
+      new_poses: `(T, 4, 4)` their corrected camera-to-world poses.
+
+    Raises:
+      ValueError: an id not held, poses of another length or not rigid, or a rule / map that
+        cannot be de-integrated (use `rebuild`).
+    """
+    ids = self._held(frame_ids)
+    poses = deintegration.check_poses(new_poses, len(ids), "new_poses")
+    deintegration.check_invertible(self.state, self.rule)
+    by_camera = collections.OrderedDict()
+    for frame_id, pose in zip(ids, poses):
+      by_camera.setdefault(self.kept[frame_id][1], []).append((frame_id, pose))
+    for camera, items in by_camera.items():
+      frames = [self.kept[frame_id][0] for frame_id, _ in items]
+      stack = fusion.Frame(*(None if frames[0][i] is None else np.stack([f[i] for f in frames])
+                             for i in range(len(frames[0]))))
+      new = np.stack([pose for _, pose in items]).astype(np.float32)
+      self._ensure_room(np.asarray(stack.depth), new, camera)
+      self.state = deintegration.reintegrate(self.state, stack, stack.T_world_cam, new, camera,
+                                             self.rule)
+      for (frame_id, _), frame, pose in zip(items, frames, new):
+        self.kept[frame_id] = (frame._replace(T_world_cam=pose), camera)
+    return self.state
+
+  def rebuild(self, new_poses: Optional[dict] = None) -> state_lib.MapState:
+    """Fuses every kept frame again, in order, from an empty map of the current capacity, at the
+    poses of `new_poses` (`{frame_id: (4, 4)}`; frames not named keep theirs). The way to apply
+    a pose correction with a rule that cannot be de-integrated (D, D+R, learned) or a map with
+    free space; it needs every fused frame kept.
+
+    Raises:
+      ValueError: some fused frames are no longer kept, or an id of `new_poses` is not held.
+    """
+    if not self.keep_frames or len(self.kept) != self.frames_fused:
+      raise ValueError(f"rebuild needs every fused frame kept: {len(self.kept)} of "
+                       f"{self.frames_fused} are (keep_frames={self.keep_frames})")
+    new_poses = dict(new_poses or {})
+    self._held(new_poses)
+    for frame_id, pose in new_poses.items():
+      deintegration.check_poses(np.asarray(pose)[None], 1, f"new_poses[{frame_id!r}]")
+    geometry = self.state.geometry
+    self.state = state_lib.init_map(
+        capacity=self.state.capacity, num_classes=self.state.num_classes,
+        voxel_size=float(self.state.voxel_size), rule=self.rule,
+        max_probes=self.state.max_probes,
+        geometry=None if geometry is None else geometry.config(), free_space=self._free_space)
+    kept, self.kept = self.kept, collections.OrderedDict()
+    self.frames_fused = 0
+    for frame_id, (frame, camera) in kept.items():
+      if frame_id in new_poses:
+        frame = frame._replace(T_world_cam=np.asarray(new_poses[frame_id], np.float32))
+      self.fuse(frame, camera, frame_id=frame_id)
     return self.state
 
   def fuse_sequence(self, frames: fusion.Frame, camera: camera_lib.Camera, *,
-                    chunk: Optional[int] = None) -> state_lib.MapState:
+                    chunk: Optional[int] = None, frame_ids=None) -> state_lib.MapState:
     """Fuses a stack of frames (`fuse_sequence`), `chunk` frames per compiled scan (default
-    all), growing the map before any chunk that could overfill it."""
+    all), growing the map before any chunk that could overfill it. `frame_ids` (T of them)
+    name the frames when frames are kept (default: their running numbers)."""
     if not isinstance(frames, fusion.Frame):
       raise TypeError(f"frames must be a jaxfusion.Frame; got {type(frames).__name__}")
     depth = np.asarray(frames.depth)
@@ -187,9 +314,20 @@ class Mapper:
     step = total if chunk is None else int(chunk)
     if step < 1:
       raise ValueError(f"chunk must be at least 1; got {chunk}")
+    ids = list(range(self.frames_fused, self.frames_fused + total)) if frame_ids is None else (
+        list(frame_ids))
+    if len(ids) != total:
+      raise ValueError(f"frame_ids must name the {total} frames; got {len(ids)}")
+    if self.keep_frames:
+      for frame_id in ids:
+        self._new_id(frame_id, None)
     for start in range(0, total, step):
       part = jax.tree.map(lambda x, s=start: x[s:s + step], frames)
       self._ensure_room(np.asarray(part.depth), np.asarray(part.T_world_cam), camera)
       self.state = fusion.fuse_sequence(self.state, part, camera, self.rule)
       self.frames_fused += int(np.shape(part.depth)[0])
+    if self.keep_frames:
+      for t, frame_id in enumerate(ids[-self.keep_frames:], start=max(total - self.keep_frames,
+                                                                        0)):
+        self._keep(frame_id, jax.tree.map(lambda x, t=t: np.asarray(x)[t], frames), camera)
     return self.state

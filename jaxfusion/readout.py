@@ -17,7 +17,7 @@ import numpy as np
 from jaxfusion import camera as camera_lib
 from jaxfusion import hashing
 from jaxfusion import numerics
-from jaxfusion.state import MapState, warn_if_dropped
+from jaxfusion.state import MapState, observed_at, observed_slots, warn_if_dropped
 
 
 def voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
@@ -28,6 +28,7 @@ def voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
 
   Returns:
     `(posterior (C, K) float32, occupied (C,) bool)`; empty slots hold the rule's prior.
+    `occupied` is `state.observed_slots`: a stored voxel with hits, not marked free.
 
   Raises:
     TypeError: `state` is not a MapState.
@@ -40,7 +41,7 @@ def voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
 @jax.jit
 def _voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
   posterior = jax.vmap(state.posterior_fn)(state.rows)
-  return posterior, state.keys[..., 0] != hashing.EMPTY
+  return posterior, observed_slots(state)
 
 
 class QueryResult(NamedTuple):
@@ -67,7 +68,7 @@ def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
   lead = points.shape[:-1]
   keys, in_range = camera_lib.voxel_keys(points.reshape(-1, 3), state.voxel_size)
   slots, found = hashing.lookup(state.keys, keys, max_probes=state.max_probes)
-  found = found & in_range
+  found = found & in_range & observed_at(state, slots)
   posterior = jax.vmap(state.posterior_fn)(jax.tree.map(lambda r: r[slots], state.rows))
   posterior = jnp.where(found[:, None], posterior, _prior_posterior(state)[None, :])
   hits = jnp.where(found, state.hits[slots], 0)
@@ -206,7 +207,7 @@ def read_map(state: MapState, *, classes: Optional[Sequence[int]] = None,
   wanted = None if classes is None else _check_classes(classes, state.num_classes)
   bounds = None if box is None else _check_box(box)
   keys = np.asarray(state.keys)
-  occupied = np.nonzero(keys[:, 0] != hashing.EMPTY)[0]
+  occupied = np.nonzero(np.asarray(observed_slots(state)))[0]
   coords = keys[occupied]
   order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
   slots = occupied[order]

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxfusion import free_space as free_space_lib
 from jaxfusion import hashing
 from jaxfusion import tsdf as tsdf_lib
 from jaxfusion.rules import base as rules_base
@@ -45,6 +46,9 @@ class MapState:
   # The geometry layer (a TSDF of its own voxel size and hash), or None: a map without it is
   # the same pytree, and is fused by the same program, as before the layer existed.
   geometry: Optional[tsdf_lib.TSDFState] = None
+  # The free-space layer (occupancy log-odds per slot, docs/equations.md §10), or None: the same
+  # pytree and program as before the layer existed.
+  free_space: Optional[free_space_lib.FreeSpaceState] = None
 
   @property
   def capacity(self) -> int:
@@ -76,7 +80,7 @@ def _check_positive_int(value, name):
 
 def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
              rule: rules_base.FusionRule, max_probes: int = DEFAULT_MAX_PROBES,
-             geometry=None) -> MapState:
+             geometry=None, free_space=False) -> MapState:
   """Allocates an empty map at full capacity.
 
   Args:
@@ -90,6 +94,11 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
     geometry: switches the geometry layer on: a `tsdf.TSDFConfig` (or a `TSDFState`, e.g. an
       empty one from `tsdf.init_tsdf`); `fuse_frame` then integrates every frame's depth into
       its TSDF in the same call. None (default): semantics only.
+    free_space: switches free-space clearing on (docs/equations.md §10): True for OctoMap's
+      numbers, or a `free_space.FreeSpaceConfig`. Each frame then marks the stored voxels its
+      depth shows as free, keeps an occupancy log-odds per voxel, stops reading out voxels that
+      became free and restarts a free voxel that is hit again from the prior. False (default):
+      off, and every map is bit-identical to one made without the option.
 
   Returns:
     A MapState with every slot empty and every row at the rule's prior.
@@ -132,7 +141,27 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
       posterior_fn=rule.posterior,
       confidence_fn=rule.confidence,
       geometry=geometry,
+      free_space=free_space_lib.init_free_space(capacity, free_space),
   )
+
+
+def observed_slots(state: MapState) -> jax.Array:
+  """`(..., C) bool`: the slots a read-out reports (docs/equations.md §4, §10.3): a stored key
+  with at least one pixel fused (a frame de-integrated to 0 hits leaves its key behind), and,
+  with free space on, an occupancy above the threshold. Jittable; on a map without free space
+  and de-integration it is exactly `keys != EMPTY`."""
+  stored = (state.keys[..., 0] != hashing.EMPTY) & (state.hits > 0)
+  occupied = free_space_lib.occupied(state.free_space)
+  return stored if occupied is None else stored & occupied
+
+
+def observed_at(state: MapState, slots: jax.Array) -> jax.Array:
+  """`observed_slots` at some slots only (a gather, not a pass over C); slots from a lookup
+  that found their key."""
+  ok = state.hits[slots] > 0
+  if state.free_space is None:
+    return ok
+  return ok & (state.free_space.log_odds[slots] > state.free_space.config.log_occupied)
 
 
 def warn_if_dropped(num_dropped: int, capacity: int) -> None:
@@ -146,8 +175,9 @@ def map_stats(state: MapState) -> dict:
   """Host-side summary of a (single, unbatched) map; warns with MapFullWarning if it overflowed.
 
   Returns:
-    dict with `capacity`, `num_classes`, `occupied`, `load_factor`, `dropped`, `voxel_size`,
-    `rule`, `max_probes`.
+    dict with `capacity`, `num_classes`, `occupied` (keys stored), `load_factor`, `dropped`,
+    `voxel_size`, `rule`, `max_probes`; with free space on also `free` (stored voxels that a
+    frame has since shown as free, not read out).
   """
   if state.keys.ndim != 2:
     raise ValueError("map_stats expects one map; index a batched map first, e.g. "
@@ -155,7 +185,7 @@ def map_stats(state: MapState) -> dict:
   occupied = int(state.num_occupied)
   dropped = int(state.num_dropped)
   warn_if_dropped(dropped, state.capacity)
-  return {
+  stats = {
       "capacity": state.capacity,
       "num_classes": state.num_classes,
       "occupied": occupied,
@@ -165,6 +195,11 @@ def map_stats(state: MapState) -> dict:
       "rule": state.rule_name,
       "max_probes": state.max_probes,
   }
+  if state.free_space is not None:
+    stored = np.asarray((state.keys[:, 0] != hashing.EMPTY) & (state.hits > 0))
+    stats["free"] = int(np.count_nonzero(stored & ~np.asarray(
+        free_space_lib.occupied(state.free_space))))
+  return stats
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "max_probes"))
@@ -189,8 +224,8 @@ def grow_map(state: MapState, capacity: int, *,
       has no empty slot to copy the prior from.
 
   Returns:
-    A MapState with `capacity` slots, the same voxels, rows, hits, dropped count, voxel size
-    and rule.
+    A MapState with `capacity` slots, the same voxels, rows, hits, occupancy log-odds (with
+    free space on), dropped count, voxel size and rule.
 
   Raises:
     ValueError: a batched map, a capacity that is not a power of two or is smaller than the
@@ -239,5 +274,9 @@ def grow_map(state: MapState, capacity: int, *,
 
   rows = jax.tree.map(move, state.rows, prior)
   hits = jnp.zeros(capacity, jnp.int32).at[new_slots].set(state.hits[old])
-  return state.replace(keys=table, rows=rows, hits=hits,
+  free = state.free_space
+  if free is not None:
+    free = free.replace(
+        log_odds=jnp.zeros(capacity, jnp.float32).at[new_slots].set(free.log_odds[old]))
+  return state.replace(keys=table, rows=rows, hits=hits, free_space=free,
                        claims=jnp.zeros(capacity, jnp.int32))

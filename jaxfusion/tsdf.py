@@ -13,6 +13,10 @@ One frame (docs/equations.md §8):
     every voxel of the U blocks ──project into the image──► sdf = (d − z)·‖p‖/z, clipped
     weighted running average of (sdf, weight), weight capped at `max_weight`
 
+`deintegrate` removes a frame integrated earlier (§8.7): the same blocks found by lookup (none
+inserted), the same voxels, observations and weights, the running average inverted; exact where
+a voxel's weight never reached `max_weight` (`capped_voxels` counts those that did).
+
 The voxel stage runs U blocks in chunks of a `lax.while_loop`, in place and in time
 proportional to U. Reverse-mode AD cannot go through that loop, so its VJP is the same update
 written densely over every slot with a mask of the blocks this frame touched (slower, paid only
@@ -52,6 +56,14 @@ _MIN_Z = 1e-4
 # Relative margin under τ of the semantic gate: a voxel seen only as free space holds τ up to the
 # rounding of the running average, so "|sdf| < τ" is tested as |sdf| < (1 − margin)·τ.
 _GATE_MARGIN = 1e-4
+# De-integration (§8.7) clears a voxel to (0, 0) where its remaining weight W − w is at most
+# min(_DEINTEGRATE_RTOL·w, _DEINTEGRATE_CAP_RTOL·max_weight): above the float32 rounding of the
+# running sums of weights (each ≤ max_weight), below any weight another observation could have
+# left (an inverse-square weight 10³ times smaller than this frame's is a depth 32 times larger).
+_DEINTEGRATE_RTOL = 1e-3
+_DEINTEGRATE_CAP_RTOL = 1e-6
+# A voxel whose weight is within this relative margin of max_weight counts as capped.
+_CAP_MARGIN = 1e-6
 
 
 class MapFullWarning(UserWarning):
@@ -306,22 +318,24 @@ def _place_blocks(state: TSDFState, keys, first, num_groups):
   return state, slot_of_group
 
 
-def _observe_voxels(sdf, weight, block_keys, depth, T_world_cam, camera, params, *,
-                    block_size: int, truncation_voxels: float, weighting: str):
-  """The projective update of every voxel of some blocks (§8.3–8.4), elementwise.
+def _voxel_observation(block_keys, depth, T_world_cam, camera, params, *, block_size: int,
+                       truncation_voxels: float, weighting: str):
+  """What one frame observes at every voxel of some blocks (§8.3–8.4), elementwise: the
+  selection, the clipped distance and the weight that `integrate` and `deintegrate` share.
 
   Args:
-    sdf, weight: `(G, V)` float32 the blocks' current rows.
-    block_keys: `(G, 3) int32` their block coordinates.
+    block_keys: `(G, 3) int32` the blocks' coordinates.
     depth: `(H, W)` float32.
     T_world_cam: `(4, 4)` float32.
     camera: intrinsics.
     params: `(voxel_size, max_weight, max_depth)` float32 scalars.
 
   Returns:
-    `(sdf, weight)`, `(G, V)` float32 each: the rows after this frame.
+    `(seen, s, w)`, `(G, V)` each: `seen` bool, the voxel projects onto a valid pixel with
+    distance ≥ −τ; `s` float32 its observation min(η, τ) in metres; `w` float32 its weight
+    (meaningful where `seen`).
   """
-  voxel_size, max_weight, max_depth = params
+  voxel_size, _, max_depth = params
   height, width = depth.shape
   tau = voxel_size * truncation_voxels
   offsets = jnp.asarray(voxel_offsets(block_size))
@@ -346,10 +360,84 @@ def _observe_voxels(sdf, weight, block_keys, depth, T_world_cam, camera, params,
   seen = seen & (distance >= -tau)
   s = jnp.minimum(distance, tau)
   w = jnp.ones_like(d) if weighting == "constant" else 1.0 / (d * d)
+  return seen, s, w
+
+
+def _observe_voxels(sdf, weight, block_keys, depth, T_world_cam, camera, params, *,
+                    block_size: int, truncation_voxels: float, weighting: str):
+  """The projective update of every voxel of some blocks (§8.3–8.4), elementwise.
+
+  Args:
+    sdf, weight: `(G, V)` float32 the blocks' current rows.
+    block_keys: `(G, 3) int32` their block coordinates.
+    depth: `(H, W)` float32.
+    T_world_cam: `(4, 4)` float32.
+    camera: intrinsics.
+    params: `(voxel_size, max_weight, max_depth)` float32 scalars.
+
+  Returns:
+    `(sdf, weight)`, `(G, V)` float32 each: the rows after this frame.
+  """
+  seen, s, w = _voxel_observation(block_keys, depth, T_world_cam, camera, params,
+                                  block_size=block_size, truncation_voxels=truncation_voxels,
+                                  weighting=weighting)
+  max_weight = params[1]
   total = weight + w
   new_sdf = jnp.where(seen, (weight * sdf + w * s) / jnp.where(seen, total, 1.0), sdf)
   new_weight = jnp.where(seen, jnp.minimum(total, max_weight), weight)
   return new_sdf, new_weight
+
+
+def _unobserve_voxels(sdf, weight, block_keys, depth, T_world_cam, camera, params, *,
+                      block_size: int, truncation_voxels: float, weighting: str):
+  """`_observe_voxels` inverted (§8.7): the rows before a frame that was integrated, from the
+  rows after it. Exact (to rounding) where the weight stayed below `max_weight`.
+
+  Args:
+    sdf, weight: `(G, V)` float32 the blocks' current rows.
+    block_keys: `(G, 3) int32` their block coordinates.
+    depth: `(H, W)` float32, the frame's depth as it was integrated.
+    T_world_cam: `(4, 4)` float32, its pose.
+    camera: intrinsics.
+    params: `(voxel_size, max_weight, max_depth)` float32 scalars.
+
+  Returns:
+    `(sdf, weight)`, `(G, V)` float32 each: the rows without this frame; a voxel whose
+    remaining weight is at most the tolerance gets exactly `(0, 0)`, never observed.
+  """
+  seen, s, w = _voxel_observation(block_keys, depth, T_world_cam, camera, params,
+                                  block_size=block_size, truncation_voxels=truncation_voxels,
+                                  weighting=weighting)
+  voxel_size, max_weight, _ = params
+  tau = voxel_size * truncation_voxels
+  rest = weight - w
+  small = jnp.minimum(_DEINTEGRATE_RTOL * w, _DEINTEGRATE_CAP_RTOL * max_weight)
+  keep = seen & (rest > small)
+  gone = seen & ~keep
+  old_sdf = jnp.clip((weight * sdf - w * s) / jnp.where(keep, rest, 1.0), -tau, tau)
+  new_sdf = jnp.where(keep, old_sdf, jnp.where(gone, 0.0, sdf))
+  new_weight = jnp.where(keep, rest, jnp.where(gone, 0.0, weight))
+  return new_sdf, new_weight
+
+
+def _chunked_update(kernel, sdf, weight, block_keys, slot_of_group, num_groups):
+  """Applies `kernel(sdf_rows, weight_rows, key_rows) -> (sdf_rows, weight_rows)` to the blocks
+  in slots `slot_of_group[:num_groups]` (capacity: skipped), `_BLOCK_CHUNK` blocks a round of a
+  `lax.while_loop`, in place: time proportional to `num_groups`, not to the capacity."""
+  capacity = sdf.shape[0]
+  chunk = min(_BLOCK_CHUNK, slot_of_group.shape[0])
+
+  def body(carry):
+    c, sdf, weight = carry
+    slots = jax.lax.dynamic_slice(slot_of_group, (c * chunk,), (chunk,))
+    read = jnp.minimum(slots, capacity - 1)
+    new_sdf, new_weight = kernel(sdf[read], weight[read], block_keys[read])
+    return (c + 1, sdf.at[slots].set(new_sdf, mode="drop"),
+            weight.at[slots].set(new_weight, mode="drop"))
+
+  _, sdf, weight = jax.lax.while_loop(lambda carry: carry[0] * chunk < num_groups, body,
+                                      (jnp.zeros((), jnp.int32), sdf, weight))
+  return sdf, weight
 
 
 def _voxel_update(static):
@@ -367,21 +455,8 @@ def _voxel_update(static):
 
   @jax.custom_vjp
   def update(sdf, weight, depth, T, camera, params, block_keys, slot_of_group, num_groups):
-    capacity = sdf.shape[0]
-    chunk = min(_BLOCK_CHUNK, slot_of_group.shape[0])
-
-    def body(carry):
-      c, sdf, weight = carry
-      slots = jax.lax.dynamic_slice(slot_of_group, (c * chunk,), (chunk,))
-      read = jnp.minimum(slots, capacity - 1)
-      new_sdf, new_weight = observe(sdf[read], weight[read], block_keys[read], depth, T, camera,
-                                    params)
-      return (c + 1, sdf.at[slots].set(new_sdf, mode="drop"),
-              weight.at[slots].set(new_weight, mode="drop"))
-
-    _, sdf, weight = jax.lax.while_loop(lambda carry: carry[0] * chunk < num_groups, body,
-                                        (jnp.zeros((), jnp.int32), sdf, weight))
-    return sdf, weight
+    kernel = lambda sdf, weight, keys: observe(sdf, weight, keys, depth, T, camera, params)
+    return _chunked_update(kernel, sdf, weight, block_keys, slot_of_group, num_groups)
 
   def fwd(sdf, weight, depth, T, camera, params, block_keys, slot_of_group, num_groups):
     out = update(sdf, weight, depth, T, camera, params, block_keys, slot_of_group, num_groups)
@@ -464,6 +539,113 @@ def integrate(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
   if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees)):
     return _integrate_copying(state, depth, T_world_cam, camera)
   return _integrate_donating(state, depth, T_world_cam, camera)
+
+
+def _find_blocks(state: TSDFState, keys, first, num_groups):
+  """Looks up the frame's U blocks without inserting, `_INSERT_CHUNK` at a time.
+
+  Returns:
+    `(slot_of_found, num_found)`: `(P,) int32` the slots of the stored blocks among the U in
+    rows `0 … num_found − 1` (capacity after them), P = `first`'s length; `[] int32` their
+    count. Blocks not stored are skipped.
+  """
+  capacity = state.capacity
+  padded = first.shape[0]
+  chunk = min(_INSERT_CHUNK, padded)
+  lanes = jnp.arange(chunk, dtype=jnp.int32)
+
+  def body(carry):
+    c, slot_of_found, count = carry
+    start = c * chunk
+    rows = jax.lax.dynamic_slice(first, (start,), (chunk,))
+    slots, found = hashing.lookup(state.block_keys, keys[rows], max_probes=state.max_probes)
+    found = found & (start + lanes < num_groups)
+    row = count + jnp.cumsum(found, dtype=jnp.int32) - 1
+    slot_of_found = slot_of_found.at[jnp.where(found, row, padded)].set(
+        slots, mode="drop", unique_indices=True)
+    return c + 1, slot_of_found, count + jnp.sum(found, dtype=jnp.int32)
+
+  init = (jnp.zeros((), jnp.int32), jnp.full(padded, capacity, jnp.int32),
+          jnp.zeros((), jnp.int32))
+  _, slot_of_found, num_found = jax.lax.while_loop(
+      lambda carry: carry[0] * chunk < num_groups, body, init)
+  return slot_of_found, num_found
+
+
+def deintegrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
+                          camera: camera_lib.Camera) -> TSDFState:
+  """`deintegrate`'s pure body (no checks, not jitted, nothing donated; not differentiable)."""
+  depth = jnp.asarray(depth, jnp.float32)
+  keys, valid = band_block_keys(state, depth, T_world_cam, camera)
+  groups = group_pixels(keys, valid)
+  n = keys.shape[0]
+  chunk = min(_INSERT_CHUNK, n)
+  padded = -(-n // chunk) * chunk
+  first = jnp.pad(groups.first_pixel, (0, padded - n))
+  slot_of_found, num_found = _find_blocks(state, keys, first, groups.num_groups)
+  static = dict(block_size=state.block_size, truncation_voxels=state.truncation_voxels,
+                weighting=state.weighting)
+  params = (state.voxel_size, state.max_weight, state.max_depth)
+  T = jnp.asarray(T_world_cam, jnp.float32)
+  kernel = lambda sdf, weight, block_keys: _unobserve_voxels(
+      sdf, weight, block_keys, depth, T, camera, params, **static)
+  sdf, weight = _chunked_update(kernel, state.sdf, state.weight, state.block_keys, slot_of_found,
+                                num_found)
+  return state.replace(sdf=sdf, weight=weight)
+
+
+_deintegrate_donating = jax.jit(deintegrate_unchecked, donate_argnums=0)
+_deintegrate_copying = jax.jit(deintegrate_unchecked)
+
+
+def deintegrate(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
+                camera: camera_lib.Camera) -> TSDFState:
+  """Removes a frame integrated earlier from the geometry layer (jitted; `state` is donated).
+
+  The inverse of `integrate` (§8.7): the frame's band blocks are looked up (never inserted;
+  blocks not stored are skipped) and every voxel that the frame updated, with the same
+  observation `s` and weight `w`, gets `W ← W − w`, `sdf ← (W·sdf − w·s) / (W − w)`; a voxel
+  left with weight at most a small tolerance (only this frame saw it) gets exactly
+  `sdf = 0, W = 0`, never observed. Blocks stay stored. Give the depth, pose and camera exactly
+  as integrated, on the same layer configuration. Voxels whose weight reached `max_weight` are
+  not restored exactly (the cap forgot how much weight came before); count them with
+  `capped_voxels` first. Not differentiable. Under a transformation nothing is donated.
+
+  Args:
+    state: the layer. Do not use it after this call.
+    depth: `(H, W)` float depth in metres, the frame's as integrated.
+    T_world_cam: `(4, 4)` float camera-to-world pose, as integrated.
+    camera: intrinsics, as integrated.
+
+  Returns:
+    The TSDFState without this frame.
+  """
+  if not isinstance(state, TSDFState):
+    raise TypeError(f"state must be a TSDFState from init_tsdf; got {type(state).__name__}")
+  check_frame_geometry(depth, T_world_cam, camera)
+  trees = (state, depth, T_world_cam, camera)
+  if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees)):
+    return _deintegrate_copying(state, depth, T_world_cam, camera)
+  return _deintegrate_donating(state, depth, T_world_cam, camera)
+
+
+def capped_voxels(state: TSDFState) -> int:
+  """Host-side count of voxels whose weight reached the cap (≥ `max_weight`·(1 − 10⁻⁶)).
+
+  `deintegrate` does not restore these exactly: past the cap the running average no longer
+  records how much weight came before. A caller about to de-integrate can warn when it is > 0.
+
+  Args:
+    state: one layer (not batched).
+
+  Returns:
+    The number of capped voxels, an int.
+  """
+  if not isinstance(state, TSDFState):
+    raise TypeError(f"capped_voxels expects a TSDFState; got {type(state).__name__}")
+  if state.weight.ndim != 2:
+    raise ValueError("capped_voxels expects one layer; index a batched one first")
+  return int(jnp.sum(state.weight >= state.max_weight * (1.0 - _CAP_MARGIN)))
 
 
 def voxel_of(state: TSDFState, p_world: jax.Array):

@@ -76,7 +76,8 @@ def match_ground_truth(state: state_lib.MapState, gt_coords: jax.Array, gt_label
                                 max_probes=state.max_probes)
   posterior, _ = readout.voxel_posteriors(state)
   labels = jnp.asarray(gt_labels, jnp.int32)
-  valid = found & (labels >= 0) & (labels < state.num_classes)
+  valid = found & state_lib.observed_at(state, slots) & (labels >= 0) & (
+      labels < state.num_classes)
   return posterior[slots], valid
 
 

@@ -2,9 +2,10 @@
 labelled mesh (docs/equations.md §7.1–§7.3).
 
 **Label images.** The GT label of a voxel is the majority of the GT pixel labels that fall
-into it over the whole sequence: every frame's GT labels are turned into one-hot
-"probabilities" and fused with the voting rule `rules.sum_labels()`, so the voxel grid, keys
-and back-projection are exactly those of the maps being evaluated. Ties go to the lowest class
+into it over the whole sequence (or over the frames its `info["gt_frames"]` names: those that
+saw the final scene of a changing world, `changes`): every frame's GT labels are turned into
+one-hot "probabilities" and fused with the voting rule `rules.sum_labels()`, so the voxel grid,
+keys and back-projection are exactly those of the maps being evaluated. Ties go to the lowest class
 index (argmax). Pixels with `IGNORE_LABEL` (or a label outside the class range) and pixels
 without depth are not fused. `gt_from_frames` fuses a stream of frame chunks, so memory does
 not grow with the sequence; `gt_voxel_labels` does it for a whole `RGBDSequence`.
@@ -161,7 +162,10 @@ def gt_voxel_labels(sequence, *, voxel_size: float = 0.1, capacity=None,
   """Majority GT label per voxel, by fusing one-hot GT labels with `rules.sum_labels()`.
 
   `gt_from_frames` over the sequence in chunks of frames; the result does not depend on the
-  chunk size.
+  chunk size. A sequence whose world changes (`changes`) says which frames the GT is of:
+  with `info["gt_frames"] = [start, stop]` only frames `start … stop - 1` are fused (those
+  that saw the final scene), and with `info["true_poses"]` (a drifting sequence) the frames
+  are placed at those true poses rather than at the stored `T_world_cam`.
 
   Args:
     sequence: an `RGBDSequence` with `labels`.
@@ -175,7 +179,7 @@ def gt_voxel_labels(sequence, *, voxel_size: float = 0.1, capacity=None,
     `labels (N,) int32` majority label, and `hits (N,) int32` labelled pixels per voxel.
 
   Raises:
-    ValueError: the sequence has no labels.
+    ValueError: the sequence has no labels, or a malformed `gt_frames` / `true_poses`.
   """
   if sequence.labels is None:
     raise ValueError(f"sequence {sequence.name!r} has no ground-truth labels")
@@ -184,11 +188,38 @@ def gt_voxel_labels(sequence, *, voxel_size: float = 0.1, capacity=None,
     chunk = int(np.clip(CHUNK_VALUES // max(h * w * sequence.num_classes, 1), 1, 16))
   if chunk < 1:
     raise ValueError(f"chunk must be at least 1; got {chunk}")
-  count = len(sequence)
-  chunks = (sequence.subset(range(start, min(start + chunk, count)))
-            for start in range(0, count, chunk))
+  first, stop = _gt_span(sequence)
+  true_poses = sequence.info.get("true_poses")
+  if true_poses is not None:
+    true_poses = np.asarray(true_poses, np.float32)
+    if true_poses.shape != sequence.T_world_cam.shape:
+      raise ValueError(f"info['true_poses'] must be {sequence.T_world_cam.shape}; got "
+                       f"{true_poses.shape}")
+
+  def frames(start: int):
+    part = sequence.subset(range(start, min(start + chunk, stop)))
+    if true_poses is None:
+      return part
+    return {**part.stacked(), "T_world_cam": true_poses[start:start + len(part)]}
+
+  chunks = (frames(start) for start in range(first, stop, chunk))
   return gt_from_frames(chunks, camera=sequence.camera, num_classes=sequence.num_classes,
                         voxel_size=voxel_size, capacity=capacity)
+
+
+def _gt_span(sequence) -> tuple:
+  """`(start, stop)`: the frames the GT of a sequence is made of (`info["gt_frames"]`)."""
+  span = sequence.info.get("gt_frames")
+  if span is None:
+    return 0, len(sequence)
+  try:
+    start, stop = (int(x) for x in span)
+  except (TypeError, ValueError):
+    start, stop = -1, -1
+  if not 0 <= start <= stop <= len(sequence):
+    raise ValueError(f"info['gt_frames'] must be [start, stop] within 0 … {len(sequence)}; "
+                     f"got {span!r}")
+  return start, stop
 
 
 # ---- Labelled meshes -----------------------------------------------------------------------

@@ -141,12 +141,20 @@ class RGBDSequence:
     return out
 
   def subset(self, indices) -> "RGBDSequence":
-    """A sequence of the selected frames (e.g. `range(0, len(seq), 5)`)."""
+    """A sequence of the selected frames (e.g. `range(0, len(seq), 5)`).
+
+    The `info` entries that name frames follow them (`changes`): the per-frame `true_poses`
+    are picked, and the frame ranges `gt_frames` (`[start, stop]`) and `passes` (a list of
+    them) are renumbered to the positions of their selected frames.
+
+    Raises:
+      ValueError: the selected frames of such a range are not consecutive in the subset.
+    """
     idx = np.asarray(list(indices), np.int64)
     pick = lambda x: None if x is None else x[idx]
     return dataclasses.replace(self, rgb=self.rgb[idx], depth=self.depth[idx],
                                T_world_cam=self.T_world_cam[idx], labels=pick(self.labels),
-                               instances=pick(self.instances))
+                               instances=pick(self.instances), info=_subset_info(self.info, idx))
 
   def save(self, path: str) -> str:
     """Writes the sequence to a folder (created if needed; existing frames are replaced).
@@ -248,6 +256,33 @@ class RGBDSequence:
                labels=stacked.get("labels"), instances=stacked.get("instances"),
                info=meta.get("info", {}))
 
+
+
+def _renumber(span, idx: np.ndarray, key: str) -> list:
+  """The frame range `[start, stop]` renumbered to the positions `idx` puts its frames at."""
+  start, stop = (int(x) for x in span)
+  inside = np.flatnonzero((idx >= start) & (idx < stop))
+  if len(inside) == 0:
+    first = int(np.sum(idx < start))
+    return [first, first]
+  if inside[-1] - inside[0] + 1 != len(inside):
+    raise ValueError(f"a subset must keep the frames of info[{key!r}] ({start} … {stop}) "
+                     "together; pick its frames in order")
+  return [int(inside[0]), int(inside[-1]) + 1]
+
+
+def _subset_info(info: dict, idx: np.ndarray) -> dict:
+  """`info` for the frames `idx` of a sequence (see `RGBDSequence.subset`)."""
+  if not any(k in info for k in ("true_poses", "gt_frames", "passes")):
+    return info
+  info = dict(info)
+  if "true_poses" in info:
+    info["true_poses"] = [info["true_poses"][i] for i in idx]
+  if "gt_frames" in info:
+    info["gt_frames"] = _renumber(info["gt_frames"], idx, "gt_frames")
+  if "passes" in info:
+    info["passes"] = [_renumber(span, idx, "passes") for span in info["passes"]]
+  return info
 
 
 def load_sequence(path: str) -> RGBDSequence:

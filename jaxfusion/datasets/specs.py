@@ -6,22 +6,26 @@ A sequence spec is a short string:
   training domain. ENV is `office` or `house`, TRAJECTORY 0, 1 or 2. A layout seed and a
   domain shift may follow, in any order after the trajectory: `office:0:s1` (layout seed 1),
   `office:0:s1:shift0.5`, `house:2:train:s11`; without them the command's own seed and shift
-  apply (`load_spec`'s `layout_seed`, `shift`).
+  apply (`load_spec`'s `layout_seed`, `shift`). One change of the world may follow too, in
+  any place of that tail (`changes.CHANGES`): `office:0:moved` (objects moved between two
+  passes), `office:0:final` (both passes in the final room), `office:0:s2:drift:shift0.5`
+  (drifting odometry poses); see `changes.make_changing_sequence`.
 * `scannet:PATH` — an exported ScanNet scene folder (`load_scannet`).
 * `tum:PATH` — a TUM RGB-D sequence folder (`load_tum`).
 * `saved:PATH` — a folder written by `RGBDSequence.save` (`load_sequence`).
 
 The older spelling `synthetic:ENV/TRAJECTORY[/DOMAIN]` is still read.
 
-An embedded sequence is named `f"{env}_{trajectory}_{domain}"` (`make_sequence`); a sequence
-rendered for one layout seed is the *unit* `f"{name}_s{seed}"` (`unit_name`), the name reports
-and caches use.
+An embedded sequence is named `f"{env}_{trajectory}_{domain}"` (`make_sequence`), or
+`f"{env}_{trajectory}_{domain}_{change}"` with a change; a sequence rendered for one layout
+seed is the *unit* `f"{name}_s{seed}"` (`unit_name`), the name reports and caches use.
 """
 
 import dataclasses
 import os
 from typing import NamedTuple, Optional
 
+from jaxfusion.datasets import changes
 from jaxfusion.datasets import scannet
 from jaxfusion.datasets import synthetic
 from jaxfusion.datasets import tum
@@ -42,6 +46,8 @@ class SequenceSpec(NamedTuple):
     path: the folder of a ScanNet, TUM or saved sequence (None for an embedded one).
     layout_seed: the embedded layout seed the spec names (None: the command's).
     shift: the embedded domain shift the spec names (None: the command's).
+    change: the change of an embedded world (`changes.CHANGES`: "moved", "final", "drift")
+      or None for the static one.
   """
   kind: str
   env: Optional[str] = None
@@ -50,12 +56,14 @@ class SequenceSpec(NamedTuple):
   path: Optional[str] = None
   layout_seed: Optional[int] = None
   shift: Optional[float] = None
+  change: Optional[str] = None
 
   def __str__(self) -> str:
     if self.kind == "synthetic":
       tail = "" if self.domain == "test" else f":{self.domain}"
       tail += "" if self.layout_seed is None else f":s{self.layout_seed}"
       tail += "" if self.shift is None else f":shift{self.shift:g}"
+      tail += "" if self.change is None else f":{self.change}"
       return f"{self.env}:{self.trajectory}{tail}"
     return f"{self.kind}:{self.path}"
 
@@ -73,17 +81,23 @@ class SequenceSpec(NamedTuple):
                          shift=float(shift if self.shift is None else self.shift))
 
 
-_EMBEDDED_SYNTAX = (f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN][:sSEED][:shiftX] with ENV "
-                    f"{'|'.join(synthetic.ENVIRONMENTS)}, TRAJECTORY 0|1|2, DOMAIN test|train, "
-                    "a layout seed SEED ≥ 0 and a shift X in [0, 1] (e.g. office:0, "
-                    "office:0:s1:shift0.5)")
+_EMBEDDED_SYNTAX = (f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN][:sSEED][:shiftX][:CHANGE] "
+                    f"with ENV {'|'.join(synthetic.ENVIRONMENTS)}, TRAJECTORY 0|1|2, DOMAIN "
+                    "test|train, a layout seed SEED ≥ 0, a shift X in [0, 1] and one CHANGE "
+                    f"{'|'.join(changes.CHANGES)} (e.g. office:0, office:0:s1:shift0.5, "
+                    "office:0:moved)")
 
 
 def _embedded(env: str, trajectory: str, tail, spec: str) -> SequenceSpec:
-  domain, seed, shift = None, None, None
+  domain, seed, shift, change = None, None, None, None
   for part in tail:
     if part in DOMAINS and domain is None:
       domain = part
+    elif part in changes.CHANGES:
+      if change is not None:
+        raise ValueError(f"an embedded sequence names one change at most "
+                         f"({'|'.join(changes.CHANGES)}); got {change} and {part} in {spec!r}")
+      change = part
     elif part[:1] == "s" and part[1:].isdigit() and seed is None:
       seed = int(part[1:])
     elif part.startswith("shift") and shift is None:
@@ -99,7 +113,7 @@ def _embedded(env: str, trajectory: str, tail, spec: str) -> SequenceSpec:
       tuple(str(t) for t in range(synthetic.NUM_TRAJECTORIES))):
     raise ValueError(f"{_EMBEDDED_SYNTAX}; got {spec!r}")
   return SequenceSpec("synthetic", env=env, trajectory=int(trajectory), domain=domain or "test",
-                      layout_seed=seed, shift=shift)
+                      layout_seed=seed, shift=shift, change=change)
 
 
 def parse_spec(spec: str) -> SequenceSpec:
@@ -118,7 +132,7 @@ def parse_spec(spec: str) -> SequenceSpec:
                        f"; got {spec!r}")
     return _embedded(parts[0], parts[1], parts[2:], spec)
   parts = spec.split(":")
-  if sep and 2 <= len(parts) <= 5 and parts[0] in synthetic.ENVIRONMENTS:
+  if sep and 2 <= len(parts) <= 6 and parts[0] in synthetic.ENVIRONMENTS:
     return _embedded(parts[0], parts[1], parts[2:], spec)
   raise ValueError(f"a sequence is ENV:TRAJECTORY[:DOMAIN] (e.g. office:0), scannet:PATH, "
                    f"tum:PATH or saved:PATH; got {spec!r}")
@@ -145,7 +159,8 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
       (`classes.LABEL_SPACES`; default "scannet12"); other kinds carry their own classes.
     label_tsv: ScanNet's `scannetv2-labels.combined.tsv`, when the folder's `label-filt/` holds
       raw ScanNet ids (as ScanNet's own 2D label exports do) rather than NYU40 ids.
-    **render: passed to `make_sequence` (`realism`, `sensing`).
+    **render: passed to `make_sequence` (`realism`, `sensing`), or to
+      `changes.make_changing_sequence` for a spec with a change.
 
   Returns:
     The `RGBDSequence`.
@@ -157,18 +172,20 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
   spec = parse_spec(spec) if isinstance(spec, str) else spec
   if spec.kind == "synthetic":
     spec = spec.resolved(layout_seed=layout_seed, shift=shift)
-    return synthetic.make_sequence(spec.env, spec.trajectory, domain=spec.domain,
-                                   num_frames=60 if num_frames is None else num_frames,
-                                   height=height, width=width, seed=spec.layout_seed,
-                                   shift=spec.shift, **render)
+    common = dict(domain=spec.domain, num_frames=60 if num_frames is None else num_frames,
+                height=height, width=width, seed=spec.layout_seed, shift=spec.shift)
+    if spec.change is not None:
+      return changes.make_changing_sequence(spec.env, spec.trajectory, change=spec.change,
+                                            **common, **render)
+    return synthetic.make_sequence(spec.env, spec.trajectory, **common, **render)
   if not os.path.isdir(spec.path):
     raise FileNotFoundError(f"{spec.kind}: no such folder {spec.path!r}")
   if spec.kind == "saved":
     seq = RGBDSequence.load(spec.path)
     keep = list(range(0, len(seq), max(int(stride), 1)))[:num_frames]
     ids = list(seq.info.get("frame_ids", range(len(seq))))
-    info = dict(seq.info, frame_ids=[ids[i] for i in keep])
-    return dataclasses.replace(seq if len(keep) == len(seq) else seq.subset(keep), info=info)
+    picked = seq if len(keep) == len(seq) else seq.subset(keep)
+    return dataclasses.replace(picked, info=dict(picked.info, frame_ids=[ids[i] for i in keep]))
   if spec.kind == "scannet":
     seq = scannet.load_scannet(spec.path, stride=stride, max_frames=num_frames,
                                skip_bad=skip_bad, label_space=label_space or "scannet12",

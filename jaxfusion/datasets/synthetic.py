@@ -7,7 +7,8 @@ trained on different data) is replaced by procedural rooms rendered with a JAX r
 * `make_sequence(env, trajectory, ...)` — a rendered `RGBDSequence` with GT labels;
 * `sample_views(domain, n, ...)` — random labelled views of many random rooms, to train a
   segmentation net on the "train" domain and meet the "test" domain at mapping time;
-* `make_scene` / `render` — the scene and the single-frame renderer behind them;
+* `make_scene` / `scene_from_layout` / `render` — the scene and the single-frame renderer
+  behind them (`changes` renders worlds that change between two passes, or drifting poses);
 * `placement(env, seed)` — where a room sits in the world frame the sequences report.
 
 Rooms are modelled in their own frame, with walls, floor and much of the furniture on whole
@@ -122,8 +123,13 @@ def make_scene(env: str, *, seed: int = 0, domain: str = "test", shift: float = 
   Returns:
     A `SyntheticScene`.
   """
+  return scene_from_layout(scene.make_layout(env, seed), domain=domain, shift=shift)
+
+
+def scene_from_layout(layout: scene.Layout, *, domain: str = "test", shift: float = 1.0
+                      ) -> SyntheticScene:
+  """A given layout (e.g. `changes.changed_layout`'s) in an appearance domain (`make_scene`)."""
   s = appearance.domain_shift(domain, shift)
-  layout = scene.make_layout(env, seed)
   prims = scene.build_primitives(layout, s)
   light = appearance.lighting(layout.room, layout.light_u, s)
   return SyntheticScene(layout, prims, light, domain, float(shift))
@@ -320,26 +326,45 @@ def make_sequence(env: str, trajectory: int, *, domain: str = "test", num_frames
   camera = default_camera(height, width)
   poses = trajectories.trajectory(world.layout.room, trajectory, num_frames)
   keys = jax.random.split(jax.random.PRNGKey(seed * 7 + trajectory), num_frames)
+  info = _sequence_info(world, trajectory, seed=seed, realism=realism)
+  # The camera's drift depends on the sequence, not on the domain: both see the same camera.
+  rng = np.random.default_rng([seed, trajectory, ENVIRONMENTS.index(env), 5151])
+  frames, states = _render_path(world, poses, keys, camera, config, realism=realism,
+                                height=height, width=width, rng=rng)
+  if states is not None:
+    info["camera_states"], info["sensing"] = states, config.as_dict()
+  return _stack_frames(f"{env}_{trajectory}_{domain}", camera, frames,
+                       np.einsum("ij,tjk->tik", placement(env, seed), poses), info)
+
+
+def _sequence_info(world: SyntheticScene, trajectory: int, *, seed: int, realism: bool) -> dict:
+  """The provenance `info` of a sequence through `world` (before any camera states)."""
+  env = world.layout.env
+  return {"source": "synthetic", "env": env, "trajectory": int(trajectory),
+          "trajectory_name": trajectories.TRAJECTORY_NAMES[trajectory], "domain": world.domain,
+          "seed": int(seed), "shift": float(world.shift), "realism": bool(realism),
+          "room_size": [float(x) for x in world.layout.room],
+          "T_world_room": placement(env, seed).tolist()}
+
+
+def _render_path(world: SyntheticScene, poses, keys, camera: Camera, config: SensingConfig, *,
+                 realism: bool, height: int, width: int, rng) -> tuple:
+  """The frames of `world` seen from room-frame `poses (T, 4, 4)` with PRNG `keys (T, 2)`;
+  returns `(frames, camera_states dict or None)` (the camera model's draws come from `rng`)."""
   sizes = trajectory_tile_sizes(world, poses, camera, height=height, width=width)
-  info = {"source": "synthetic", "env": env, "trajectory": int(trajectory),
-          "trajectory_name": trajectories.TRAJECTORY_NAMES[trajectory], "domain": domain,
-          "seed": int(seed), "shift": float(shift), "realism": bool(realism),
-          "room_size": [float(x) for x in world.layout.room]}
-  T_world_room = placement(env, seed)
-  info["T_world_room"] = T_world_room.tolist()
   if realism and config.enabled:
-    # The camera's drift depends on the sequence, not on the domain: both see the same camera.
-    rng = np.random.default_rng([seed, trajectory, ENVIRONMENTS.index(env), 5151])
-    frames, info["camera_states"] = _sensed_frames(world, poses, keys, camera, sizes, config,
-                                                   height=height, width=width, rng=rng)
-    info["sensing"] = config.as_dict()
-  else:
-    frames = [render(world, T, camera, height=height, width=width, realism=realism, key=k,
-                     tile_sizes=sizes, sensing=config) for T, k in zip(poses, keys)]
+    return _sensed_frames(world, poses, keys, camera, sizes, config, height=height, width=width,
+                          rng=rng)
+  return [render(world, T, camera, height=height, width=width, realism=realism, key=k,
+                 tile_sizes=sizes, sensing=config) for T, k in zip(poses, keys)], None
+
+
+def _stack_frames(name: str, camera: Camera, frames, T_world_cam, info: dict) -> RGBDSequence:
+  """An `RGBDSequence` of rendered frames with world-frame poses `T_world_cam (T, 4, 4)`."""
   return RGBDSequence(
-      name=f"{env}_{trajectory}_{domain}", class_names=CLASS_NAMES, camera=camera,
+      name=name, class_names=CLASS_NAMES, camera=camera,
       rgb=np.stack([f.rgb for f in frames]), depth=np.stack([f.depth for f in frames]),
-      T_world_cam=np.einsum("ij,tjk->tik", T_world_room, poses).astype(np.float32),
+      T_world_cam=np.asarray(T_world_cam).astype(np.float32),
       labels=np.stack([f.labels for f in frames]),
       instances=np.stack([f.instances for f in frames]), info=info)
 

@@ -12,6 +12,10 @@ A rule is split into kernels written for one item; the engine vmaps them at the 
 - `update(row, obs, hparams) -> row`: applies one frame's reduced observation to one voxel.
 - `posterior(row) -> (K,)`: the normalised class distribution the voxel reports.
 - `confidence(row) -> (K,)` or None: a per-class confidence (ᾱ for the Dirichlet rules).
+- `remove(row, obs, hparams) -> row` or None: the inverse of `update` for one frame's reduced
+  observation, for rules whose update can be undone (a sum of scores or of log-likelihoods);
+  `jaxfusion.deintegration.unfuse_frame` calls it. None: the update cannot be inverted (a
+  running maximum, a gate on the voxel's state), and de-integration refuses the rule.
 
 `fuse_frame` only ever calls these five, so a new rule is a new set of functions, never a new
 branch in the engine. Hyperparameters users tune or differentiate (β, ε, α₀) are leaves of
@@ -55,6 +59,8 @@ class FusionRule:
   requires_var: bool = struct.field(pytree_node=False)
   aggregate: str = struct.field(pytree_node=False)
   context: tuple = struct.field(pytree_node=False, default=())
+  remove: Optional[Callable[[dict, VoxelObservation, dict], dict]] = struct.field(
+      pytree_node=False, default=None)
 
 
 def check_aggregate(aggregate: str) -> str:

@@ -24,6 +24,13 @@ def _score_update(row, obs, hparams):
   return {"score": row["score"] + obs.sums["score"]}
 
 
+def _score_remove(row, obs, hparams):
+  """The inverse of `_score_update`; a score is a sum of non-negative terms, so the rounding of
+  the subtraction is clipped at 0."""
+  del hparams
+  return {"score": jnp.maximum(row["score"] - obs.sums["score"], 0.0)}
+
+
 def _score_posterior(row):
   return numerics.safe_normalize(row["score"])
 
@@ -37,7 +44,7 @@ def sum_probs(*, aggregate: str = "sum") -> base.FusionRule:
   return base.FusionRule(
       hparams={}, name="sum_probs", init=_score_init, observe=_sum_probs_observe,
       update=_score_update, posterior=_score_posterior, confidence=None, requires_var=False,
-      aggregate=base.check_aggregate(aggregate))
+      aggregate=base.check_aggregate(aggregate), remove=_score_remove)
 
 
 # --- sum_labels (voting): N_i += Σ_j [argmax p̄_j = i] ------------------------------------------
@@ -52,7 +59,7 @@ def sum_labels(*, aggregate: str = "sum") -> base.FusionRule:
   return base.FusionRule(
       hparams={}, name="sum_labels", init=_score_init, observe=_sum_labels_observe,
       update=_score_update, posterior=_score_posterior, confidence=None, requires_var=False,
-      aggregate=base.check_aggregate(aggregate))
+      aggregate=base.check_aggregate(aggregate), remove=_score_remove)
 
 
 # --- bayes (SemanticFusion, paper eq. 2) --------------------------------------------------------
@@ -77,9 +84,16 @@ def log_update(row, obs, hparams):
   return {"logp": numerics.normalize_log(row["logp"] + obs.sums["loglik"])}
 
 
+def log_remove(row, obs, hparams):
+  """The inverse of `log_update`: `log P_{t−1} = normalise(log P_t − Σ_j log p_j)` (the
+  normalisation is a shift, so it is undone by the next one)."""
+  del hparams
+  return {"logp": numerics.normalize_log(row["logp"] - obs.sums["loglik"])}
+
+
 def bayes(*, aggregate: str = "sum") -> base.FusionRule:
   """Bayesian fusion: `log P_t(i) = log P_{t−1}(i) + Σ_j log p̄_j,i`, then normalise."""
   return base.FusionRule(
       hparams={}, name="bayes", init=log_init, observe=_bayes_observe, update=log_update,
       posterior=log_posterior, confidence=None, requires_var=False,
-      aggregate=base.check_aggregate(aggregate))
+      aggregate=base.check_aggregate(aggregate), remove=log_remove)

@@ -60,6 +60,11 @@ def _update(row, obs, hparams):
   return {"logp": numerics.normalize_log(row["logp"] + obs.sums["wloglik"])}
 
 
+def _remove(row, obs, hparams):
+  del hparams
+  return {"logp": numerics.normalize_log(row["logp"] - obs.sums["wloglik"])}
+
+
 def glfs(table=None, *, num_classes: int = None, depth_edges=DEPTH_EDGES,
          angle_edges=ANGLE_EDGES, aggregate: str = "sum") -> base.FusionRule:
   """The GLFS rule (module docstring).
@@ -100,4 +105,4 @@ def glfs(table=None, *, num_classes: int = None, depth_edges=DEPTH_EDGES,
   return base.FusionRule(
       hparams=hparams, name="glfs", init=_init, observe=_observe, update=_update,
       posterior=log_posterior, confidence=None, requires_var=False,
-      aggregate=base.check_aggregate(aggregate), context=CONTEXT)
+      aggregate=base.check_aggregate(aggregate), context=CONTEXT, remove=_remove)

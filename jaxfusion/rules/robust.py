@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxfusion import numerics
 from jaxfusion.rules import base
-from jaxfusion.rules.baselines import log_init, log_posterior, log_update
+from jaxfusion.rules.baselines import log_init, log_posterior, log_remove, log_update
 
 DEFAULT_BETA = 0.3
 DEFAULT_EPS = 1e-12
@@ -197,7 +197,8 @@ def robust(*, beta=DEFAULT_BETA, eps=DEFAULT_EPS, regularize=True, dirichlet=Tru
   if not dirichlet:
     return base.FusionRule(
         hparams=hparams, name="robust_r", init=_r_init, observe=_r_observe, update=log_update,
-        posterior=log_posterior, confidence=None, requires_var=False, aggregate=aggregate)
+        posterior=log_posterior, confidence=None, requires_var=False, aggregate=aggregate,
+        remove=log_remove)
   return base.FusionRule(
       hparams=hparams, name="robust_dr" if regularize else "robust_d", init=_dirichlet_init,
       observe=_dr_observe if regularize else _d_observe, update=_dirichlet_update,

@@ -253,7 +253,8 @@ def test_unobserved_voxels_report_a_custom_rules_prior_and_a_full_map_uniform():
   np.testing.assert_allclose(q.entropy, -np.sum(p0 * np.log(p0)), rtol=1e-5)
   # A map with no empty slot has no prior row left to read: uniform.
   keys = np.stack([np.arange(16), np.zeros(16), np.zeros(16)], -1).astype(np.int32)
-  full = state.replace(keys=jnp.asarray(keys), num_occupied=jnp.asarray(16, jnp.int32))
+  full = state.replace(keys=jnp.asarray(keys), hits=jnp.ones(16, jnp.int32),
+                       num_occupied=jnp.asarray(16, jnp.int32))
   q = jf.query(full, np.array([[0.1, 0.1, 0.1], [-5.0, 0.0, 0.0]], np.float32))
   np.testing.assert_array_equal(q.found, [True, False])
   np.testing.assert_allclose(q.posterior[1], 1.0 / K, rtol=1e-6)
