@@ -22,6 +22,8 @@
   simulate-sweep  fusion rules on a grid of a simulated front end (`lab.simulate`)
   learn-rule      fit the learned fusion rule on calibration layouts (`lab.learning`)
   predict         a front end's predictions for sequences, as precomputed files (`lab.predict`)
+  changing-world  free-space clearing on moved objects, re-integration after drift
+                  (`lab.changing`)
 
 Each command module offers `add_parser(subparsers)` and `main(args) -> int`; shared flags are
 in `lab.flags`. Errors a user can fix (a wrong sequence spec, an unreadable folder, an unknown
@@ -35,7 +37,7 @@ import sys
 
 # The modules that register commands, in the order of `jaxfusion --help`.
 COMMAND_MODULES = ("demo", "maps", "ground_truth", "data", "viewer.command", "study",
-                   "mesh_study", "tuning", "simulate", "learning", "predict")
+                   "mesh_study", "tuning", "simulate", "learning", "predict", "changing")
 
 
 def build_parser() -> argparse.ArgumentParser:
