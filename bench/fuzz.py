@@ -8,17 +8,28 @@ probabilities, zero / NaN / +inf / 1e30 / within-tolerance negative variances, e
 poses (translations of 1e6–1e9 m, past the key limit at the top) and small maps (2^8–2^10
 slots) that overfill. About one call in eight carries an input that must be refused with a
 ValueError/TypeError: a non-finite or near-singular pose, probabilities with the wrong K,
-negative probabilities or variances, or no variance for a rule that needs one.
+negative probabilities or variances, or no variance for a rule that needs one. Every other map
+carries free-space clearing (`FREE_SPACE_CONFIG`, docs/equations.md §10): the schedule runs each
+(entry point, shape, rule) through all its shapes with clearing off, then all with it on; and
+about one frame in three looks again from an earlier frame's pose (`revisit`), at a wall behind
+what that frame saw (clearing frees it) or at the same surface (a freed voxel restarts).
 
 After every call it checks (docs/equations.md §1.3, §2.1, §5):
   * every row of the map finite; the posterior of every occupied voxel finite, in [0, 1] and
     summing to 1 within 1e-5; its entropy finite and ≥ 0; `num_occupied` ≤ capacity and equal
     to the number of stored keys (a jitted pass over the whole table, with `posterior_fn` and
     `numerics.entropy`, the same math as `read_map`; `read_map` itself, which compiles once per
-    number of occupied voxels, is called on maps that are empty or full);
+    number of voxels read out, is called on maps whose read-out is empty or full);
   * the stored keys: the old ones kept, the new ones among the frames' valid voxels (recomputed
     on the host with `camera.depth_to_voxel_keys` and the validity rule of §2.1); the hits
     added equal the valid pixels of stored voxels;
+  * with clearing on, instead of the last: after one frame every stored voxel's hits are its
+    old ones plus the frame's pixels, or only the frame's pixels where it was free and is hit
+    again (a restart); after a stack, at most the old hits plus the stack's pixels, at least
+    the last frame's pixels, unchanged where no frame hit it; the voxels the last frame hit are
+    read out (occupied), every read-out voxel is stored, and the occupancy log-odds are finite,
+    within the clamps on stored slots and 0 on empty ones; the read-out counts the stored
+    voxels that are not free (`read_map` and `map_stats(...)["free"]`);
   * drops: for one frame, exactly `num_dropped` grows by the new valid voxels that were not
     stored; for a stack, at least that; a call with more new valid voxels than free slots must
     drop; `map_stats(...)["dropped"]` equals `num_dropped`, with `MapFullWarning` iff > 0;
@@ -65,12 +76,20 @@ VOXEL_SIZES = (0.02, 0.1)
 # Calls in one cycle of the schedule: 12 frames per cycle, a third through each entry point.
 SCHEDULE = ("frame", "frame", "frame", "frame", "sequence", "batch")
 REJECT_PROBABILITY = 0.12
+# A frame looks again from an earlier frame's pose (`revisit`), so that clearing has voxels to
+# free and to restart.
+REVISIT_PROBABILITY = 0.3
 REJECT_REASONS = ("pose_nonfinite", "pose_near_singular", "k_mismatch", "negative_probs",
                   "negative_var", "missing_var")
 RSS_EVERY = 500
 SUM_TOL = 1e-5
 BOUND_TOL = 1e-6                  # float32 rounding of exp(normalised log p) may pass 1 by ulps
 MAX_EXAMPLES = 10
+# Maps without and with free-space clearing (docs/equations.md §10), in turn. The maps with it
+# take a miss probability of 0.2 (OctoMap's 0.4 needs three misses to free a voxel hit once), so
+# that voxels are freed and restarted within a map's short life.
+FREE_SPACE = (False, True)
+FREE_SPACE_CONFIG = jf.FreeSpaceConfig(prob_miss=0.2)
 RULE_NAMES = tuple(jf.rules.PAPER_RULES)
 NEEDS_VAR = {name: jf.rules.by_name(name).requires_var for name in RULE_NAMES}
 
@@ -181,6 +200,25 @@ def make_frame(rng, height: int, width: int, num_classes: int, with_var: bool, f
   return [as32(depth), as32(pose), as32(probs), as32(var)]
 
 
+def revisit(rng, frame, source, features) -> None:
+  """Makes `frame` (a list [depth, pose, probs, var]) look again from `source`'s pose (an
+  earlier frame): at a wall 0.3–2 m behind the farthest surface `source` saw (which frees what
+  it saw) or, where `source` has depth, at the very same surface (which restarts a voxel freed
+  since); the frame's own holes and odd depths stay."""
+  valid = lambda d: np.isfinite(d) & (d > 0)
+  seen = valid(source[0]) & (source[0] < 1e6)
+  keep = valid(frame[0]) & (frame[0] < 1e6)
+  if rng.random() < 0.5 or not seen.any():
+    features["revisit_behind"] += 1
+    far = float(source[0][seen].max()) if seen.any() else 6.0
+    frame[0] = np.where(keep, np.float32(far + rng.uniform(0.3, 2.0)), frame[0])
+  else:
+    features["revisit_same_surface"] += 1
+    frame[0] = np.where(keep & seen, source[0], frame[0])
+  frame[0] = frame[0].astype(np.float32)
+  frame[1] = np.array(source[1], np.float32)
+
+
 def inject(rng, frames, reason: str, num_classes: int):
   """Makes one frame of `frames` (a list of [depth, pose, probs, var]) one that the public
   entry points must refuse for `reason`; `k_mismatch` and `missing_var` apply to all frames
@@ -235,15 +273,28 @@ def key_set(keys: np.ndarray) -> set:
 
 
 def snapshot(state) -> dict:
-  """What the checks need of a map before a call (copied: the call donates it)."""
+  """What the checks need of a map before a call (copied: the call donates it); with clearing
+  on also each stored voxel's hits (`slot_hits`, by key) and the keys that are free."""
   keys = np.asarray(state.keys)
-  return {"keys": key_set(keys[keys[:, 0] != hashing.EMPTY]),
-          "hits": int(np.asarray(state.hits, np.int64).sum()),
-          "occupied": int(state.num_occupied), "dropped": int(state.num_dropped)}
+  stored = keys[:, 0] != hashing.EMPTY
+  hits = np.asarray(state.hits, np.int64)
+  out = {"keys": key_set(keys[stored]), "hits": int(hits.sum()),
+         "occupied": int(state.num_occupied), "dropped": int(state.num_dropped)}
+  if state.free_space is not None:
+    rows = [row.tobytes() for row in np.ascontiguousarray(keys[stored], np.int32)]
+    free = np.asarray(state.free_space.log_odds)[stored] <= state.free_space.config.log_occupied
+    out["slot_hits"] = dict(zip(rows, hits[stored].tolist()))
+    out["free"] = {row for row, f in zip(rows, free) if f}
+  return out
 
 
 def empty_snapshot() -> dict:
-  return {"keys": set(), "hits": 0, "occupied": 0, "dropped": 0}
+  return {"keys": set(), "hits": 0, "occupied": 0, "dropped": 0, "slot_hits": {}, "free": set()}
+
+
+def pixel_counts(keys: np.ndarray) -> collections.Counter:
+  """Valid pixels per voxel key of one frame (`valid_keys`)."""
+  return collections.Counter(map(bytes, np.ascontiguousarray(keys, np.int32)))
 
 
 @jax.jit
@@ -254,7 +305,14 @@ def _table_check(state):
   posterior, occupied = jf.voxel_posteriors(state)
   entropy = numerics.entropy(posterior)
   occ = occupied[:, None]
-  return {
+  stored = state.keys[:, 0] != hashing.EMPTY
+  extra = {}
+  if state.free_space is not None:
+    log_odds, config = state.free_space.log_odds, state.free_space.config
+    within = ((log_odds >= config.log_min - BOUND_TOL) & (log_odds <= config.log_max + BOUND_TOL)
+              & jnp.isfinite(log_odds))
+    extra["log_odds_ok"] = jnp.all(jnp.where(stored, within, log_odds == 0.0))
+  return extra | {
       "rows_finite": rows_finite,
       "posterior_finite": jnp.all(jnp.where(occ, jnp.isfinite(posterior), True)),
       "posterior_min": jnp.min(jnp.where(occ, posterior, 1.0)),
@@ -262,7 +320,9 @@ def _table_check(state):
       "sum_error": jnp.max(jnp.where(occupied, jnp.abs(jnp.sum(posterior, -1) - 1.0), 0.0)),
       "entropy_finite": jnp.all(jnp.where(occupied, jnp.isfinite(entropy), True)),
       "entropy_min": jnp.min(jnp.where(occupied, entropy, 0.0)),
-      "stored_keys": jnp.sum(occupied, dtype=jnp.int32),
+      "stored_keys": jnp.sum(stored, dtype=jnp.int32),
+      "observed": jnp.sum(occupied, dtype=jnp.int32),
+      "observed_not_stored": jnp.any(occupied & ~stored),
   }
 
 
@@ -313,6 +373,9 @@ class Soak:
     for name in ("posterior_min", "entropy_min"):
       self.extremes[name] = min(self.extremes[name], float(r[name]))
 
+    # `read_map` compiles once per number of voxels it reads out: it reads maps whose read-out
+    # is empty or full (with clearing on, a full map with free voxels is not read).
+    read = read and int(r["observed"]) in (0, capacity)
     after = snapshot(state)
     if after["occupied"] > capacity or after["occupied"] != int(r["stored_keys"]):
       self.violation("occupied_count", where, f"num_occupied {after['occupied']}, stored keys "
@@ -324,11 +387,17 @@ class Soak:
     if stray:
       self.violation("stray_keys", where, f"{len(stray)} stored keys of no valid pixel, e.g. "
                      f"{np.frombuffer(next(iter(stray)), np.int32).tolist()}")
-    stored_pixels = sum(sum(k in after["keys"] for k in map(bytes, np.ascontiguousarray(f)))
-                        for f in frame_keys)
-    if after["hits"] - before["hits"] != stored_pixels:
-      self.violation("hits", where, f"hits grew by {after['hits'] - before['hits']}, valid "
-                     f"pixels of stored voxels {stored_pixels}")
+    if state.free_space is None:
+      stored_pixels = sum(sum(k in after["keys"] for k in map(bytes, np.ascontiguousarray(f)))
+                          for f in frame_keys)
+      if after["hits"] - before["hits"] != stored_pixels:
+        self.violation("hits", where, f"hits grew by {after['hits'] - before['hits']}, valid "
+                       f"pixels of stored voxels {stored_pixels}")
+      if int(r["observed"]) != int(r["stored_keys"]):
+        self.violation("observed_count", where, f"{int(r['observed'])} voxels read out of "
+                       f"{int(r['stored_keys'])} stored, without free space")
+    else:
+      self.check_cleared(r, before, after, frame_keys, single, where)
 
     new_valid = len(union - before["keys"])
     new_stored = after["occupied"] - before["occupied"]
@@ -359,24 +428,63 @@ class Soak:
       if read:
         out = jf.read_map(state)
     warned = sum(issubclass(w.category, jf.MapFullWarning) for w in caught)
-    if stats["dropped"] != after["dropped"] or stats["occupied"] != after["occupied"]:
+    if stats["dropped"] != after["dropped"] or stats["occupied"] != after["occupied"] or (
+        state.free_space is not None and stats["free"] != len(after["free"])):
       self.violation("map_stats", where, f"{stats} vs {after['dropped']} dropped")
     if (warned > 0) != (after["dropped"] > 0):
       self.violation("map_full_warning", where, f"{warned} warnings, {after['dropped']} dropped")
     if read:
       self.counts["read_map_calls"] += 1
       p, e = out["posterior"], out["entropy"]
-      if len(p) != after["occupied"]:
-        self.violation("read_map_count", where, f"{len(p)} voxels read, {after['occupied']}")
+      if len(p) != int(r["observed"]):
+        self.violation("read_map_count", where, f"{len(p)} voxels read, {int(r['observed'])} "
+                       "observed")
       if len(p) and not (np.all(np.isfinite(p)) and p.min() >= 0.0
                          and p.max() <= 1.0 + BOUND_TOL
                          and np.abs(p.sum(-1) - 1.0).max() <= SUM_TOL
                          and np.all(np.isfinite(e)) and e.min() >= -BOUND_TOL):
         self.violation("read_map_posterior", where, f"min {p.min()}, max {p.max()}")
 
+  def check_cleared(self, r: dict, before: dict, after: dict, frame_keys: list, single: bool,
+                    where: dict) -> None:
+    """The checks of a map with free-space clearing on that replace the hit count's (module
+    docstring): hits per stored voxel with restarts, the last frame's voxels read out, the
+    log-odds in their clamps, the read-out within the stored voxels."""
+    self.counts["maps_checked_free_space"] += 1
+    if not r["log_odds_ok"]:
+      self.violation("log_odds", where, str(r))
+    if r["observed_not_stored"]:
+      self.violation("read_out_not_stored", where, str(r))
+    pixels = [pixel_counts(f) for f in frame_keys]
+    total = sum(pixels, collections.Counter())
+    last = pixels[-1] if pixels else collections.Counter()
+    old, new = before["slot_hits"], after["slot_hits"]
+    restarted, wrong = 0, []
+    for key, hits in new.items():
+      n, base = total.get(key, 0), old.get(key, 0)
+      if single:
+        again = n > 0 and key in before["free"]
+        restarted += again
+        ok = hits == (0 if again else base) + n
+      else:
+        ok = hits == base if n == 0 else last.get(key, 0) <= hits <= base + n
+      if not ok:
+        wrong.append((np.frombuffer(key, np.int32).tolist(), base, n, hits))
+    if wrong:
+      self.violation("hits_with_clearing", where, f"{len(wrong)} stored voxels, e.g. (key, hits "
+                     f"before, pixels, hits after) {wrong[0]}")
+    unread = sum(key in new and key in after["free"] for key in last)
+    if unread:
+      self.violation("hit_voxel_free", where, f"{unread} voxels the last frame hit are free")
+    if int(r["observed"]) != len(new) - len(after["free"]):
+      self.violation("observed_count", where, f"{int(r['observed'])} voxels read out, "
+                     f"{len(new)} stored, {len(after['free'])} free")
+    self.counts["restarted_voxels"] += restarted
+    self.counts["free_voxels_at_checks"] += len(after["free"])
+
   # --- one call through an entry point ---
   def call(self, entry: str, shape, rule_name: str, rng, counted: bool = True,
-           force_overfill: bool = False) -> None:
+           force_overfill: bool = False, free_space: bool = False) -> None:
     name, height, width, num_classes, capacity, with_var = shape
     with_var = with_var or NEEDS_VAR[rule_name]
     rule = jf.rules.by_name(rule_name)
@@ -391,6 +499,16 @@ class Soak:
         f[1] = np.eye(4, dtype=np.float32)
         f[2] = np.full((height, width, num_classes), 1.0 / num_classes, np.float32)
         f[3] = None if f[3] is None else np.full_like(f[2], 0.01)
+    key = (entry, name, rule_name, free_space)
+    if not force_overfill:
+      # Frames that look again from an earlier pose: from the map's anchor (its first frame,
+      # while the map lasts) or an earlier frame of the same sequence in this call.
+      kept = key in self.maps and self.maps[key][1] > 0 and self.maps[key][3] is not None
+      for i, f in enumerate(frames):
+        first = (i // BATCH_LENGTH) * BATCH_LENGTH if entry == "batch" else 0
+        sources = frames[first:i] + ([self.maps[key][3]] if kept else [])
+        if sources and rng.random() < REVISIT_PROBABILITY:
+          revisit(rng, f, sources[rng.integers(len(sources))], features)
     reason = None
     if counted and rng.random() < REJECT_PROBABILITY:
       reason = REJECT_REASONS[rng.integers(len(REJECT_REASONS))]
@@ -403,17 +521,17 @@ class Soak:
       group = frames[:BATCH_LENGTH] if entry == "batch" and reason == "k_mismatch" else frames
       inject(rng, group, reason, num_classes)
     where = {"call": self.calls, "entry": entry, "shape": name, "rule": rule_name,
-             "expected": reason or "accept",
+             "free_space": free_space, "expected": reason or "accept",
              "extreme_pose": bool(any(np.abs(f[1][:3, 3]).max() > 1e5 for f in frames))}
 
-    key = (entry, name, rule_name)
     if entry != "batch":
       if key not in self.maps or self.maps[key][1] <= 0:
         voxel_size = 0.02 if force_overfill else float(rng.choice(VOXEL_SIZES))
         state = jf.init_map(capacity=capacity, num_classes=num_classes,
-                            voxel_size=voxel_size, rule=rule)
-        self.maps[key] = [state, int(rng.integers(5, 40)), voxel_size]
-      state, _, voxel_size = self.maps[key]
+                            voxel_size=voxel_size, rule=rule,
+                            free_space=free_space and FREE_SPACE_CONFIG)
+        self.maps[key] = [state, int(rng.integers(5, 40)), voxel_size, None]
+      state, _, voxel_size, _ = self.maps[key]
       before = snapshot(state)
     else:
       voxel_size = BATCH_VOXEL_SIZE
@@ -433,7 +551,7 @@ class Soak:
                      for b in range(BATCH_SIZE)]
         batch, mask = jf.stack_sequences(sequences, pad=False)
         result = jf.fuse_batch(batch, camera, rule, capacity=capacity, voxel_size=voxel_size,
-                               mask=mask)
+                               mask=mask, free_space=free_space and FREE_SPACE_CONFIG)
       jax.block_until_ready(result)
     except (ValueError, TypeError) as err:
       if counted:
@@ -458,6 +576,7 @@ class Soak:
       self.frames += length
       self.counts[f"accepted_calls_{entry}"] += 1
       self.counts["accepted_frames"] += length
+      self.counts["accepted_frames_free_space"] += length if free_space else 0
     if reason is not None:
       self.violation(f"accepted_{reason}", where, _describe(frames, reason))
 
@@ -476,6 +595,8 @@ class Soak:
                      read=occupied in (0, capacity))
       self.maps[key][0] = result
       self.maps[key][1] -= 1
+      if self.maps[key][3] is None:         # the anchor later frames may look again from
+        self.maps[key][3] = [frames[0][0].copy(), frames[0][1].copy()]
 
 
 def _describe(frames, reason: str) -> str:
@@ -489,14 +610,16 @@ def _describe(frames, reason: str) -> str:
 
 
 def schedule():
-  """The endless cycle of (entry, shape, rule) calls: every rule through every entry point."""
+  """The endless cycle of (entry, shape, rule, free space) calls: every rule through every entry
+  point, through all its shapes with free-space clearing off, then all with it on."""
   shapes = {"frame": FRAME_SHAPES, "sequence": SEQUENCE_SHAPES, "batch": BATCH_SHAPES}
   turn = collections.Counter()
   while True:
     for rule_name in RULE_NAMES:
       for entry in SCHEDULE:
         options = [s for s in shapes[entry] if s[5] or not NEEDS_VAR[rule_name]]
-        yield entry, options[turn[entry, rule_name] % len(options)], rule_name
+        n = turn[entry, rule_name]
+        yield entry, options[n % len(options)], rule_name, (n // len(options)) % 2 == 1
         turn[entry, rule_name] += 1
 
 
@@ -510,13 +633,16 @@ def warm_up(soak: Soak, rng) -> float:
       for shape in options:
         if not shape[5] and NEEDS_VAR[rule_name]:
           continue
-        for _ in range(3 if entry == "frame" else 2):
-          soak.call(entry, shape, rule_name, rng, counted=False, force_overfill=True)
-        soak.call(entry, shape, rule_name, rng, counted=False)
-        # `read_map` of an empty map (all holes, keys past the limit) compiles its own shapes.
-        empty = jf.init_map(capacity=shape[4], num_classes=shape[3],
-                            rule=jf.rules.by_name(rule_name))
-        soak.check_map(empty, empty_snapshot(), [], True, {"call": -1}, read=True)
+        for free in FREE_SPACE:
+          for _ in range(3 if entry == "frame" else 2):
+            soak.call(entry, shape, rule_name, rng, counted=False, force_overfill=True,
+                      free_space=free)
+          soak.call(entry, shape, rule_name, rng, counted=False, free_space=free)
+          # `read_map` of an empty map (all holes, keys past the limit) compiles its own shapes.
+          empty = jf.init_map(capacity=shape[4], num_classes=shape[3],
+                              rule=jf.rules.by_name(rule_name),
+                              free_space=free and FREE_SPACE_CONFIG)
+          soak.check_map(empty, empty_snapshot(), [], True, {"call": -1}, read=True)
   soak.maps.clear()
   return time.perf_counter() - start
 
@@ -534,10 +660,10 @@ def run(num_frames: int, seed: int, log=print) -> dict:
   rss = [(0, _rss_mb())]
   start = time.perf_counter()
   next_sample = RSS_EVERY
-  for entry, shape, rule_name in schedule():
+  for entry, shape, rule_name, free in schedule():
     if soak.frames >= num_frames:
       break
-    soak.call(entry, shape, rule_name, rng)
+    soak.call(entry, shape, rule_name, rng, free_space=free)
     if soak.frames >= next_sample:
       gc.collect()
       rss.append((soak.frames, _rss_mb()))
@@ -565,6 +691,9 @@ def run(num_frames: int, seed: int, log=print) -> dict:
                                                                           "batch")},
       "rejected_frames": dict(soak.rejected_frames), "rejected_calls": dict(soak.rejected_calls),
       "maps_checked": soak.counts["maps_checked"], "read_map_calls": soak.counts["read_map_calls"],
+      "free_space": {name: soak.counts[name] for name in (
+          "accepted_frames_free_space", "maps_checked_free_space", "free_voxels_at_checks",
+          "restarted_voxels")},
       "overfill": dict(soak.overfill), "features": dict(sorted(soak.features.items())),
       "extremes": {k: float(v) for k, v in soak.extremes.items()},
       "violations": dict(soak.violations), "violation_total": sum(soak.violations.values()),
@@ -594,6 +723,10 @@ def table(r: dict) -> str:
       f"| calls rejected, by reason | {sum(r['rejected_calls'].values())}: {calls} |",
       f"| maps checked (read_map on empty/full maps) | {r['maps_checked']} "
       f"({r['read_map_calls']}) |",
+      f"| with free-space clearing: frames accepted / maps checked / free voxels summed over "
+      f"the checks / voxels restarted | {r['free_space']['accepted_frames_free_space']} / "
+      f"{r['free_space']['maps_checked_free_space']} / "
+      f"{r['free_space']['free_voxels_at_checks']} / {r['free_space']['restarted_voxels']} |",
       f"| calls that overfilled a map (new valid voxels > free slots) / voxels dropped there | "
       f"{o.get('overfilled_maps', 0)} / {o.get('dropped_in_overfilled', 0)} |",
       f"| calls that dropped before the map was full (probe bound) / voxels dropped | "

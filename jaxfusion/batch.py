@@ -14,7 +14,9 @@ fused exactly as `init_map` followed by `fuse_sequence` would fuse it.
 one `(B, T_max, H_max, W_max)` stack and returns a `(B, T_max)` mask. Padding is provably neutral:
 a masked frame's depth is set to 0 inside the kernel, and a pixel with depth 0 is invalid, touches
 no voxel and changes no state (the engine skips it before grouping); padded pixels (bottom / right)
-have depth 0 too, and the pixels kept keep their (u, v), so their rays do not change.
+have depth 0 too, and the pixels kept keep their (u, v), so their rays do not change. With
+free-space clearing on (`fuse_batch(..., free_space=True)`) a pixel of depth 0 sees no surface,
+so padding marks no voxel free either.
 
 **Devices.** Pass `mesh=make_mesh()` to shard the leading batch axis over all devices with
 `jax.shard_map`: every device fuses its slice of sequences (or of rules) on its own, with the same
@@ -37,6 +39,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxfusion import camera as camera_lib
+from jaxfusion import free_space as free_space_lib
 from jaxfusion import fusion
 from jaxfusion import rules as rules_lib
 from jaxfusion import state as state_lib
@@ -131,7 +134,8 @@ def stack_sequences(sequences: Sequence[fusion.Frame], *, pad: bool = True
 # --- the per-map kernel and its batched forms ------------------------------------------------
 def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera,
                 rule: rules_base.FusionRule, *, capacity: int, num_classes: int,
-                voxel_size: float, max_probes: int, geometry=None) -> state_lib.MapState:
+                voxel_size: float, max_probes: int, geometry=None,
+                free_space=False) -> state_lib.MapState:
   """One map, pure and jittable: `init_map` then `fuse_sequence` of the frames where `mask`.
 
   Args:
@@ -144,6 +148,7 @@ def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera
     voxel_size: voxel edge in metres.
     max_probes: hash probe bound.
     geometry: a `tsdf.TSDFConfig` for a geometry layer, or None.
+    free_space: free-space clearing (`init_map`'s option: False, True or a `FreeSpaceConfig`).
 
   Returns:
     The fused MapState.
@@ -151,7 +156,8 @@ def fuse_masked(frames: fusion.Frame, mask: jax.Array, camera: camera_lib.Camera
   assert frames.depth.ndim == 3 and mask.shape == frames.depth.shape[:1], (
       frames.depth.shape, mask.shape)
   state = state_lib.init_map(capacity=capacity, num_classes=num_classes, voxel_size=voxel_size,
-                             rule=rule, max_probes=max_probes, geometry=geometry)
+                             rule=rule, max_probes=max_probes, geometry=geometry,
+                             free_space=free_space)
   return fusion.fuse_sequence_unchecked(state, mask_frames(frames, mask), camera, rule)
 
 
@@ -186,14 +192,15 @@ def shard_leading(fn, mesh: Optional[Mesh], sharded: tuple):
 
 @functools.partial(jax.jit, static_argnames=(
     "capacity", "num_classes", "max_probes", "frames_axis", "rule_axis", "camera_axis", "mesh",
-    "geometry"))
+    "geometry", "free_space"))
 def _fuse_many(frames, mask, camera, rule, voxel_size, *, capacity, num_classes, max_probes,
-               frames_axis, rule_axis, camera_axis, mesh, geometry=None):
+               frames_axis, rule_axis, camera_axis, mesh, geometry=None, free_space=False):
   # `voxel_size` is traced, not static: as a compile-time constant XLA may fold `x / s` into
   # `x · (1/s)`, whose rounding puts far-away points (|x| ≳ 10⁴ voxels) in other voxels than
   # `fuse_frame` / `fuse_sequence` (which get it at run time) put them.
   one = functools.partial(fuse_masked, capacity=capacity, num_classes=num_classes,
-                          voxel_size=voxel_size, max_probes=max_probes, geometry=geometry)
+                          voxel_size=voxel_size, max_probes=max_probes, geometry=geometry,
+                          free_space=free_space)
   fn = map_over(one, frames_axis=frames_axis, rule_axis=rule_axis, camera_axis=camera_axis)
   sharded = ((frames_axis and not rule_axis,) * 2 + (camera_axis and not rule_axis,)
              + (rule_axis,))
@@ -310,10 +317,21 @@ def num_stacked_rules(rules: rules_base.FusionRule) -> int:
   return sizes.pop()
 
 
+def _free_space_option(free_space):
+  """`fuse_batch`'s `free_space`, checked (the one line `init_map` gives) and hashable."""
+  if isinstance(free_space, free_space_lib.FreeSpaceConfig):
+    return free_space
+  if free_space is None or isinstance(free_space, bool):
+    return bool(free_space)
+  raise TypeError(f"free_space must be True, False or a jaxfusion.free_space.FreeSpaceConfig; "
+                  f"got {type(free_space).__name__}")
+
+
 def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionRule, *,
                capacity: int, voxel_size: float = 0.1, mask=None,
                max_probes: int = state_lib.DEFAULT_MAX_PROBES,
-               mesh: Optional[Mesh] = None, geometry=None) -> state_lib.MapState:
+               mesh: Optional[Mesh] = None, geometry=None,
+               free_space=False) -> state_lib.MapState:
   """Fuses B sequences into B maps of one capacity, in one compiled call.
 
   Args:
@@ -328,16 +346,20 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
     max_probes: hash probe bound.
     mesh: shard the B sequences over this mesh's devices (see `make_mesh`); None: one device.
     geometry: a `tsdf.TSDFConfig`: every map carries a geometry layer of this configuration.
+    free_space: free-space clearing in every map (`init_map`'s option: False, True or a
+      `free_space.FreeSpaceConfig`; docs/equations.md §10).
 
   Returns:
     A MapState whose arrays have a leading `(B,)` axis; map b equals `fuse_sequence` of
-    sequence b into an empty map. Take one out with `jax.tree.map(lambda x: x[b], states)`.
+    sequence b into an empty map (made with the same `free_space`). Take one out with
+    `jax.tree.map(lambda x: x[b], states)`.
   """
   if not isinstance(rule, rules_base.FusionRule):
     raise TypeError(f"rule must be a FusionRule; got {type(rule).__name__}")
   if geometry is not None and not isinstance(geometry, tsdf.TSDFConfig):
     raise TypeError(f"geometry must be a jaxfusion.tsdf.TSDFConfig or None; got "
                     f"{type(geometry).__name__}")
+  free_space = _free_space_option(free_space)
   num_classes = np.shape(frames.probs)[-1] if isinstance(frames, fusion.Frame) else None
   mask = check_batch_frames(frames, mask, rule, batch_dims=2, num_classes=num_classes)
   batch = mask.shape[0]
@@ -353,7 +375,8 @@ def fuse_batch(frames: fusion.Frame, camera: CameraArg, rule: rules_base.FusionR
     rule = put_sharded(rule, mesh, sharded=False)
   states = _fuse_many(frames, mask, camera, rule, np.float32(voxel_size), capacity=capacity,
                       num_classes=num_classes, max_probes=max_probes, frames_axis=True,
-                      rule_axis=False, camera_axis=camera_axis, mesh=mesh, geometry=geometry)
+                      rule_axis=False, camera_axis=camera_axis, mesh=mesh, geometry=geometry,
+                      free_space=free_space)
   return jax.tree.map(lambda x: x[:batch], states) if size != batch else states
 
 

@@ -78,7 +78,7 @@ def _unfuse_frame_of(state: MapState, frames: fusion.Frame, camera: camera_lib.C
   slot_of_group = _find_groups(state, px.keys, groups, counts)
   rows = fusion._rows_update(rule, chunk, px.observe, kernel=rule.remove)(  # pylint: disable=protected-access
       state.rows, px.probs, px.var, px.ctx, rule.hparams, groups.segment, counts,
-      slot_of_group, groups.num_groups, index)
+      slot_of_group, groups.num_groups, index, None)
   capacity = state.capacity
   read = jnp.minimum(slot_of_group, capacity - 1)
   left = jnp.maximum(state.hits[read] - counts.astype(jnp.int32), 0)

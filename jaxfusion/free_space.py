@@ -134,13 +134,18 @@ def occupied(free: Optional[FreeSpaceState]) -> Optional[jax.Array]:
   return free.log_odds > free.config.log_occupied
 
 
-def _shift(x, offset: int, axis: int):
-  """`x[i − offset]` along `axis`, the index clamped to the image (edge values repeated): a
-  window centred off the image, cut to it, is contained in the window of the nearest edge
-  pixel, which is what the min-filter needs."""
+def _min_shifted(x, step: int, axis: int):
+  """`min(x[i − step], x[i + step])` along `axis`, indices clamped to the image (edge values
+  repeated: a window centred off the image, cut to it, is contained in the window of the
+  nearest edge pixel, which is what the min-filter needs). One edge pad; the two slices fuse
+  into the minimum."""
   n = x.shape[axis]
-  index = jnp.clip(jnp.arange(n) - offset, 0, n - 1)
-  return jnp.take(x, index, axis=axis)
+  k = min(step, n)
+  pad = [(0, 0)] * x.ndim
+  pad[axis] = (k, k)
+  padded = jnp.pad(x, pad, mode="edge")
+  return jnp.minimum(jax.lax.slice_in_dim(padded, 0, n, axis=axis),
+                     jax.lax.slice_in_dim(padded, 2 * k, 2 * k + n, axis=axis))
 
 
 def window_radius(level: int) -> int:
@@ -159,14 +164,11 @@ def depth_pyramid(depth: jax.Array, levels: int = MAX_LEVEL) -> jax.Array:
   d = jnp.where(jnp.isfinite(d) & (d > 0), d, jnp.inf)
   out = [d]
   for level in range(1, levels + 1):
-    r = window_radius(level)
-    step = 1 if level == 1 else r // 2
+    step = 1 if level == 1 else window_radius(level) // 2
     m = out[-1]
     for axis in (0, 1):
-      if level == 1:
-        m = jnp.minimum(m, jnp.minimum(_shift(m, 1, axis), _shift(m, -1, axis)))
-      else:
-        m = jnp.minimum(_shift(m, step, axis), _shift(m, -step, axis))
+      shifted = _min_shifted(m, step, axis)
+      m = jnp.minimum(m, shifted) if level == 1 else shifted
     out.append(m)
   return jnp.stack(out)
 
@@ -194,7 +196,8 @@ def free_voxels(keys: jax.Array, voxel_size: jax.Array, depth: jax.Array,
   """
   depth = jnp.asarray(depth, jnp.float32)
   height, width = depth.shape
-  pyramid = depth_pyramid(depth)
+  # Materialised once: left to itself XLA may fuse the chain of minima into the gathers below.
+  pyramid = jax.lax.optimization_barrier(depth_pyramid(depth))
   s = jnp.asarray(voxel_size, jnp.float32)
   centre = (keys.astype(jnp.float32) + 0.5) * s
   T = jnp.asarray(T_world_cam, jnp.float32)
@@ -208,9 +211,11 @@ def free_voxels(keys: jax.Array, voxel_size: jax.Array, depth: jax.Array,
   v = jnp.floor(camera.fy * y / zs + camera.cy + 0.5)
   inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
   radius = jnp.maximum(camera.fx, camera.fy) * half / zs
-  # The smallest level whose window radius covers the footprint: radius ≤ 2^(k−1).
-  level = jnp.where(radius <= 1.0, 1.0, jnp.ceil(jnp.log2(jnp.maximum(radius, 1.0))) + 1.0)
-  level = jnp.clip(level, 1, MAX_LEVEL).astype(jnp.int32)
+  # The smallest level k ≥ 1 whose window radius 2^(k−1) covers the footprint (the largest
+  # where none does): one comparison per level, no logarithm.
+  level = jnp.ones_like(radius, dtype=jnp.int32)
+  for k in range(1, MAX_LEVEL):
+    level = level + (radius > window_radius(k)).astype(jnp.int32)
   pixel = jnp.where(inside, v * width + u, 0.0).astype(jnp.int32)
   centre_depth = pyramid[0].reshape(-1)[pixel]
   nearest = pyramid.reshape(MAX_LEVEL + 1, -1)[level, pixel]
@@ -227,34 +232,30 @@ def mark(state, depth: jax.Array, T_world_cam: jax.Array, camera) -> jax.Array:
   return free_voxels(state.keys, state.voxel_size, depth, T_world_cam, camera, margin)
 
 
-def apply(state, free: jax.Array, slot_of_group: jax.Array, counts: jax.Array, init_row):
-  """One frame's occupancy update and change detection, after its voxels were placed.
+def is_free(layer: FreeSpaceState) -> jax.Array:
+  """`(C,) bool`: slots at or below the occupancy threshold (free, or never hit: empty)."""
+  return layer.log_odds <= layer.config.log_occupied
+
+
+def apply(state, free: jax.Array, slot_of_group: jax.Array):
+  """One frame's occupancy update, after its voxels were placed (docs/equations.md §10.2).
+
+  The restart of re-hit free voxels happens in the engine: their hits are counted from 0
+  (`fusion._place_groups`) and their rule rows start from the prior (`fusion._rows_update`).
 
   Args:
-    state: the MapState with the frame's voxels placed (their hits already added).
+    state: the MapState with the frame's voxels placed.
     free: `(C,) bool` from `mark`.
     slot_of_group: `(P,) int32` the slot of each of the frame's voxel groups (C: none).
-    counts: `(P,) float32` the pixels of each group.
-    init_row: the rule's empty row (dict of `(K,)`), which a re-hit free voxel restarts from.
 
   Returns:
-    The MapState with new log-odds, and the rows and hits of re-hit free voxels reset.
+    The MapState with the new log-odds.
   """
   layer = state.free_space
   config = layer.config
-  capacity = state.capacity
-  hit = jnp.zeros(capacity, bool).at[slot_of_group].set(True, mode="drop")
-  was_free = layer.log_odds <= config.log_occupied
-  restart = hit & was_free
+  hit = jnp.zeros(state.capacity, bool).at[slot_of_group].set(True, mode="drop")
+  was_free = is_free(layer)
   log_odds = jnp.where(hit, jnp.where(was_free, 0.0, layer.log_odds) + config.log_hit,
                        jnp.where(free, layer.log_odds + config.log_miss, layer.log_odds))
   log_odds = jnp.clip(log_odds, config.log_min, config.log_max)
-  # Re-hit free voxels: the row of an empty slot, and this frame's pixels as their hits.
-  restart_group = restart[jnp.minimum(slot_of_group, capacity - 1)] & (slot_of_group < capacity)
-  target = jnp.where(restart_group, slot_of_group, capacity)
-  rows = jax.tree.map(
-      lambda r, p: r.at[target].set(jnp.broadcast_to(jnp.asarray(p, r.dtype), (target.shape[0],)
-                                                     + r.shape[1:]), mode="drop"),
-      state.rows, init_row)
-  hits = state.hits.at[target].set(counts.astype(jnp.int32), mode="drop")
-  return state.replace(rows=rows, hits=hits, free_space=layer.replace(log_odds=log_odds))
+  return state.replace(free_space=layer.replace(log_odds=log_odds))

@@ -62,8 +62,9 @@ class Frame(NamedTuple):
   rgb: Optional[jax.Array] = None
 
 
-def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int):
-  """Finds or inserts the frame's U voxels, `chunk` at a time, and adds their pixel counts.
+def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int, reset=None):
+  """Finds or inserts the frame's U voxels, `chunk` at a time, and adds their pixel counts
+  (to 0 instead of the stored count where `reset (C,) bool`: free-space restarts, §10.2).
 
   Returns:
     `(state, slot_of_group)`: the map with new keys, hits and counters, and `(P,) int32` the slot
@@ -80,8 +81,9 @@ def _place_groups(state: MapState, keys, groups: PixelGroups, counts, chunk: int
     placed = hashing.insert(table, claims, keys[first], active, max_probes=state.max_probes)
     write = jnp.where(placed.found, placed.slots, capacity)
     count = jax.lax.dynamic_slice(counts, (start,), (chunk,)).astype(jnp.int32)
-    hits = hits.at[write].set(
-        numerics.saturating_add(hits[jnp.minimum(write, capacity - 1)], count), mode="drop")
+    read = jnp.minimum(write, capacity - 1)
+    stored = hits[read] if reset is None else jnp.where(reset[read], 0, hits[read])
+    hits = hits.at[write].set(numerics.saturating_add(stored, count), mode="drop")
     return (c + 1, placed.table, placed.claims, hits,
             jax.lax.dynamic_update_slice(slot_of_group, write, (start,)),
             new + jnp.sum(placed.is_new, dtype=jnp.int32),
@@ -126,8 +128,9 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable,
   """
   kernel = rule.update if kernel is None else kernel
 
-  def apply(rows, hparams, sums, maxes, counts, slots):
-    """Applies reduced observations (raw per-group sums and maxes) at `slots`."""
+  def apply(rows, hparams, sums, maxes, counts, slots, fresh):
+    """Applies reduced observations (raw per-group sums and maxes) at `slots`; a group where
+    `fresh` (or None) starts from the rule's empty row instead of the stored one."""
     capacity = jax.tree.leaves(rows)[0].shape[0]
     ok = slots < capacity
     if rule.aggregate == "mean":
@@ -137,10 +140,14 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable,
     observation = rules_base.VoxelObservation(sums, maxes, jnp.where(ok, counts, 1.0))
     read_slot = jnp.where(ok, slots, 0)
     old = jax.tree.map(lambda r: r[read_slot], rows)
+    if fresh is not None:
+      prior = rule.init(jax.tree.leaves(rows)[0].shape[-1], hparams)
+      old = jax.tree.map(lambda o, p: jnp.where(fresh[:, None], jnp.asarray(p, o.dtype)[None], o),
+                         old, prior)
     new = jax.vmap(kernel, in_axes=(0, 0, None))(old, observation, hparams)
     return jax.tree.map(lambda r, x: r.at[slots].set(x.astype(r.dtype), mode="drop"), rows, new)
 
-  def dense(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index):
+  def dense(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index, fresh):
     probs, var = _frame_of(probs, index), _frame_of(var, index)
     num_rows = counts.shape[0]
     segment = jnp.minimum(segment, num_rows)
@@ -151,10 +158,11 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable,
     maxes = jax.tree.map(
         lambda t: jax.ops.segment_max(t, segment, num_segments=num_rows + 1)[:num_rows],
         terms.maxes)
-    return apply(rows, hparams, sums, maxes, counts, slot_of_group)
+    return apply(rows, hparams, sums, maxes, counts, slot_of_group, fresh)
 
   @jax.custom_vjp
-  def update(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups, index):
+  def update(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups, index,
+             fresh):
     n, num_classes = probs.shape[-2:]
     blocks = _pixel_blocks(n)
     size = n // blocks
@@ -191,26 +199,29 @@ def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable,
       sums, maxes = jax.tree.map(lambda x: x[:chunk], (sums, maxes))
       return c + 1, apply(rows, hparams, sums, maxes,
                           jax.lax.dynamic_slice(counts, (start,), (chunk,)),
-                          jax.lax.dynamic_slice(slot_of_group, (start,), (chunk,)))
+                          jax.lax.dynamic_slice(slot_of_group, (start,), (chunk,)),
+                          None if fresh is None else
+                          jax.lax.dynamic_slice(fresh, (start,), (chunk,)))
 
     _, rows = jax.lax.while_loop(lambda carry: carry[0] * chunk < num_groups, body,
                                  (jnp.zeros((), jnp.int32), rows))
     return rows
 
-  def fwd(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups, index):
+  def fwd(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups, index,
+          fresh):
     out = update(rows, probs, var, ctx, hparams, segment, counts, slot_of_group, num_groups,
-                 index)
-    return out, (rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index)
+                 index, fresh)
+    return out, (rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index, fresh)
 
   def bwd(residuals, cotangent):
     # The context is a function of the frame that is not differentiated (its cotangent is 0).
-    rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index = residuals
+    rows, probs, var, ctx, hparams, segment, counts, slot_of_group, index, fresh = residuals
     _, vjp = jax.vjp(
-        lambda r, p, v, h, c: dense(r, p, v, ctx, h, segment, c, slot_of_group, index),
+        lambda r, p, v, h, c: dense(r, p, v, ctx, h, segment, c, slot_of_group, index, fresh),
         rows, probs, var, hparams, counts)
     d_rows, d_probs, d_var, d_hparams, d_counts = vjp(cotangent)
     d_ctx = None if ctx is None else jnp.zeros_like(ctx)
-    return d_rows, d_probs, d_var, d_ctx, d_hparams, None, d_counts, None, None, None
+    return d_rows, d_probs, d_var, d_ctx, d_hparams, None, d_counts, None, None, None, None
 
   update.defvjp(fwd, bwd)
   return update
@@ -320,22 +331,27 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
       valid = valid & tsdf.surface_gate(geometry, px.depth, px.pose, camera)
     geometry = tsdf.integrate_unchecked(geometry, px.depth, px.pose, camera)
 
-  # Free space (docs/equations.md §10), when the map has the layer: the stored voxels the depth
-  # shows as free, marked before this frame's voxels are placed.
+  # Free space (docs/equations.md §10), when the map has the layer: a free voxel the frame hits
+  # restarts (its hits from 0, its row from the rule's prior).
+  reset = fresh = None
   if state.free_space is not None:
-    free = free_space_lib.mark(state, px.depth, px.pose, camera)
+    reset = free_space_lib.is_free(state.free_space)
 
   groups, counts, chunk = _pixel_groups(px.keys, valid)
 
   # Place the frame's voxels in the map, then reduce the rule's per-pixel terms per voxel and
   # update each touched voxel once.
-  state, slot_of_group = _place_groups(state, px.keys, groups, counts, chunk)
+  state, slot_of_group = _place_groups(state, px.keys, groups, counts, chunk, reset)
   if state.free_space is not None:
-    state = free_space_lib.apply(state, free, slot_of_group, counts,
-                                 rule.init(state.num_classes, rule.hparams))
+    # The voxels the depth shows as free, marked after the placement (a voxel new in this frame
+    # is hit, and a hit wins: the same result as marking before it, and the loop above keeps
+    # updating the keys in place).
+    free = free_space_lib.mark(state, px.depth, px.pose, camera)
+    fresh = reset[jnp.minimum(slot_of_group, state.capacity - 1)]
+    state = free_space_lib.apply(state, free, slot_of_group)
   rows = _rows_update(rule, chunk, px.observe)(
       state.rows, px.probs, px.var, px.ctx, rule.hparams, groups.segment, counts,
-      slot_of_group, groups.num_groups, index)
+      slot_of_group, groups.num_groups, index, fresh)
   return state.replace(rows=rows, geometry=geometry)
 
 

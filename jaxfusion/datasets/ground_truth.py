@@ -8,7 +8,8 @@ one-hot "probabilities" and fused with the voting rule `rules.sum_labels()`, so 
 keys and back-projection are exactly those of the maps being evaluated. Ties go to the lowest class
 index (argmax). Pixels with `IGNORE_LABEL` (or a label outside the class range) and pixels
 without depth are not fused. `gt_from_frames` fuses a stream of frame chunks, so memory does
-not grow with the sequence; `gt_voxel_labels` does it for a whole `RGBDSequence`.
+not grow with the sequence; `gt_voxel_labels` does it for a whole `RGBDSequence`, and `gt_part`
+picks the frames (and true poses) a chunk read on its own adds to the GT, for streamed GT.
 
 **Labelled mesh** (ScanNet's `*_vh_clean_2.labels.ply`, NYU40 ids per vertex). The faces are
 sampled on an even deterministic grid; each sample takes the label of its face's nearest
@@ -189,22 +190,54 @@ def gt_voxel_labels(sequence, *, voxel_size: float = 0.1, capacity=None,
   if chunk < 1:
     raise ValueError(f"chunk must be at least 1; got {chunk}")
   first, stop = _gt_span(sequence)
-  true_poses = sequence.info.get("true_poses")
-  if true_poses is not None:
-    true_poses = np.asarray(true_poses, np.float32)
-    if true_poses.shape != sequence.T_world_cam.shape:
-      raise ValueError(f"info['true_poses'] must be {sequence.T_world_cam.shape}; got "
-                       f"{true_poses.shape}")
-
-  def frames(start: int):
-    part = sequence.subset(range(start, min(start + chunk, stop)))
-    if true_poses is None:
-      return part
-    return {**part.stacked(), "T_world_cam": true_poses[start:start + len(part)]}
-
-  chunks = (frames(start) for start in range(first, stop, chunk))
+  _true_poses(sequence)                  # a malformed entry is refused before any fusing
+  chunks = (gt_part(sequence.subset(range(start, min(start + chunk, stop))))
+            for start in range(first, stop, chunk))
   return gt_from_frames(chunks, camera=sequence.camera, num_classes=sequence.num_classes,
                         voxel_size=voxel_size, capacity=capacity)
+
+
+def gt_part(chunk):
+  """What of a labelled chunk the GT is made of, by `gt_voxel_labels`' rule: the chunk's frames
+  within its `info["gt_frames"]`, placed at its `info["true_poses"]` when it has them.
+
+  For GT computed chunk by chunk (`gt_from_frames` over `SequenceStream.chunks`, or over
+  `seq.subset(...)` pieces): `RGBDSequence.subset` renumbers `gt_frames` and picks
+  `true_poses` for the frames it keeps, so each chunk says for itself which of its frames count.
+
+  Args:
+    chunk: an `RGBDSequence` (or subset of one); anything else (a dict of arrays, a frame) is
+      returned unchanged.
+
+  Returns:
+    The chunk itself when its info names neither; else its GT frames (none, for a chunk of the
+    first pass of a changing world), as an `RGBDSequence` or, with true poses, a dict of
+    `depth (t, H, W)`, `T_world_cam (t, 4, 4)` (the true poses) and `labels (t, H, W)`.
+
+  Raises:
+    ValueError: a malformed `gt_frames` / `true_poses`.
+  """
+  info = getattr(chunk, "info", None)
+  if not isinstance(info, Mapping) or not ("gt_frames" in info or "true_poses" in info):
+    return chunk
+  start, stop = _gt_span(chunk)
+  true_poses = _true_poses(chunk)
+  part = chunk if (start, stop) == (0, len(chunk)) else chunk.subset(range(start, stop))
+  if true_poses is None:
+    return part
+  return {"depth": part.depth, "T_world_cam": true_poses[start:stop], "labels": part.labels}
+
+
+def _true_poses(sequence) -> Optional[np.ndarray]:
+  """`(T, 4, 4) float32` the true poses of a drifting sequence (`info["true_poses"]`), or None."""
+  true_poses = sequence.info.get("true_poses")
+  if true_poses is None:
+    return None
+  true_poses = np.asarray(true_poses, np.float32)
+  if true_poses.shape != sequence.T_world_cam.shape:
+    raise ValueError(f"info['true_poses'] must be {sequence.T_world_cam.shape}; got "
+                     f"{true_poses.shape}")
+  return true_poses
 
 
 def _gt_span(sequence) -> tuple:

@@ -201,6 +201,7 @@ class RGBDSequence:
     Args:
       path: the folder.
       frames: the frame indices to read (default all): a long sequence can be read in chunks.
+        The `info` entries that name frames follow them, as in `subset`.
 
     Returns:
       The sequence, bit-identical to the one saved.
@@ -254,7 +255,8 @@ class RGBDSequence:
     return cls(name=name, class_names=class_names, camera=camera,
                rgb=stacked["rgb"], depth=stacked["depth"], T_world_cam=stacked["T_world_cam"],
                labels=stacked.get("labels"), instances=stacked.get("instances"),
-               info=meta.get("info", {}))
+               info=meta.get("info", {}) if frames is None else _subset_info(
+                   meta.get("info", {}), np.asarray(indices, np.int64)))
 
 
 

@@ -133,9 +133,10 @@ def check_disjoint(sets: Mapping[str, Optional[Sequence[SequenceSpec]]]) -> None
 
 
 def sequence_name(spec: SequenceSpec) -> str:
-  """A sequence's name in reports and prediction folders: the folder's own name
+  """A sequence's name in reports, caches and prediction folders: the folder's own name
   (`scannet:/data/scans/scene0000_00` → `scene0000_00`), or for an embedded sequence
-  `ENV_TRAJECTORY_DOMAIN_sSEED_shiftX` (seed and shift when the spec names them)."""
+  `ENV_TRAJECTORY_DOMAIN_sSEED_shiftX_CHANGE` (seed, shift and change when the spec names them:
+  `office:0:s1:moved` → `office_0_test_s1_moved`, never the name of `office:0:s1`)."""
   if not spec.is_embedded:
     return os.path.basename(os.path.normpath(spec.path))
   name = f"{spec.env}_{spec.trajectory}_{spec.domain}"
@@ -143,12 +144,15 @@ def sequence_name(spec: SequenceSpec) -> str:
     name += f"_s{spec.layout_seed}"
   if spec.shift is not None:
     name += f"_shift{spec.shift:g}"
+  if spec.change is not None:
+    name += f"_{spec.change}"
   return name
 
 
 def predictions_folder(root: str, spec: SequenceSpec) -> str:
   """`ROOT/<sequence_name(spec)>/`, the per-sequence folder of precomputed predictions; for an
-  embedded spec, `ROOT/ENV_TRAJECTORY_DOMAIN/` when only that older name exists.
+  embedded spec, `ROOT/ENV_TRAJECTORY_DOMAIN[_CHANGE]/` (the sequence's own name) when only that
+  older name exists — a changing world's never falls back to its static sequence's folder.
 
   Raises:
     FileNotFoundError: neither folder exists.
@@ -157,7 +161,8 @@ def predictions_folder(root: str, spec: SequenceSpec) -> str:
   if os.path.isdir(path):
     return path
   if spec.is_embedded:
-    older = os.path.join(root, f"{spec.env}_{spec.trajectory}_{spec.domain}")
+    change = "" if spec.change is None else f"_{spec.change}"
+    older = os.path.join(root, f"{spec.env}_{spec.trajectory}_{spec.domain}{change}")
     if os.path.isdir(older):
       return older
   raise FileNotFoundError(f"--predictions: no folder {path} for {spec} (one folder per "

@@ -373,6 +373,21 @@ def crop_to_region(maps: dict, region: np.ndarray, pad: int = 6) -> dict:
   return out
 
 
+GHOST_COLORS = np.array([[200, 200, 200], [220, 0, 160]], np.uint8)
+
+
+def ghost_figure(path: str, maps: dict, region: np.ndarray, voxel_size: float) -> None:
+  """The maps cut to the ghost region's box, every voxel grey except those of the ghost region
+  that the map still reads out (magenta)."""
+  ghost = {tuple(c) for c in np.asarray(region, np.int64)}
+  marked = {}
+  for title, m in crop_to_region(maps, region).items():
+    inside = np.array([tuple(c) in ghost for c in np.asarray(m["coords"], np.int64)], bool)
+    marked[f"{title}: {int(inside.sum())} of {len(ghost)} ghost voxels"] = {
+        "coords": m["coords"], "labels": inside.astype(np.int64)}
+  figures.map_views(path, marked, voxel_size=voxel_size, colors=GHOST_COLORS)
+
+
 def _reading(s: dict, rules) -> list:
   """The page's summary sentences, from the numbers."""
   r = lambda name, tag, key: s["rows"].get(f"{name}/{tag}", {}).get(key, float("nan"))
@@ -449,8 +464,10 @@ def write_page(path: str, result: dict, command: str) -> None:
           f"{_f(r['miou_final'])} | {_f(r['miou_always'])} | {_f(r['miou_static'])} |")
   lines += ["", "![cleared and uncleared maps](../changing_world_maps.png)", "",
             "D+R maps of the first unit after both passes, clearing off and with the "
-            "calibrated clamp, beside the final scene's GT, cut to where the moved and removed "
-            "objects stood (PLY files of both maps: `outputs/changing/`).", "", "## Drifting poses", "",
+            "calibrated clamp, cut to where the moved and removed objects stood: in magenta the "
+            "ghost voxels each still reads out. By class, beside the final scene's GT: "
+            "[changing_world_maps_classes.png](../changing_world_maps_classes.png); PLY files of "
+            "both maps: `outputs/changing/`.", "", "## Drifting poses", "",
             f"One pass whose poses drift (the end {s['drift_end_m']:.2f} m off on average), fused "
             "at the drifted poses, then corrected to the true ones (Bayes: `Mapper.reintegrate`, "
             "exact de-integration; D+R cannot be inverted: `Mapper.rebuild` fuses every kept "
@@ -506,9 +523,11 @@ def run(config: ChangingConfig, out_dir: str, *, front_end=None, page: Optional[
             for k, v in maps.items()}
     np.savez_compressed(os.path.join(out_dir, "views.npz"), region=region, **{
         f"{k}/{f}": v[f] for k, v in maps.items() for f in ("coords", "labels")})
-    maps = crop_to_region(maps, region)
     for path in filter(None, (figure, os.path.join(out_dir, "changing_world_maps.png"))):
-      figures.map_views(path, maps, voxel_size=config.voxel_size, colors=colors)
+      ghost_figure(path, {k: v for k, v in maps.items() if not k.startswith("GT")}, region,
+                   config.voxel_size)
+      figures.map_views(path.replace(".png", "_classes.png"), crop_to_region(maps, region),
+                        voxel_size=config.voxel_size, colors=colors)
     for tag in ("off", last):
       m = maps[f"D+R, clearing {tag}"]
       jf.io.export_ply(os.path.join(out_dir, f"moved_robust_dr_clearing_{tag}.ply"),

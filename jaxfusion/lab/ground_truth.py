@@ -79,7 +79,7 @@ def _images(spec, args, space: Optional[str]):
     if first.labels is None:
       raise ValueError(f"{spec}: the data has no ground-truth labels (no label-filt/ folder "
                        f"and no {MESH_PATTERN})")
-    gt = gt_lib.gt_from_frames(frames.chunks(16), camera=first.camera,
+    gt = gt_lib.gt_from_frames(map(gt_lib.gt_part, frames.chunks(16)), camera=first.camera,
                                num_classes=len(first.class_names), voxel_size=args.voxel_size)
     return gt, first.class_names
   seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height,

@@ -1,8 +1,15 @@
 """Commands on one map: `jaxfusion run` (fuse a sequence of your data with one rule), `eval`
 (score a saved map against GT voxel labels) and `export` (a saved map as a PLY).
+
+`run --free-space` makes the map with free-space clearing (docs/equations.md §10): voxels a
+later frame shows as free are not read out, so the saved map, its PLY and its score are those of
+the cleared map (the map file keeps the occupancy log-odds; its name ends in `_free`).
+`run --true-poses` fuses a drifting sequence (`office:0:drift`) at its true poses
+(`info["true_poses"]`) instead of the drifted ones it stores (its name ends in `_true_poses`).
 """
 
 import argparse
+import dataclasses
 import os
 
 import numpy as np
@@ -110,6 +117,20 @@ def _rule(args, num_classes=None):
                             num_classes=num_classes)[1]
 
 
+def _at_true_poses(seq, data: str):
+  """`--true-poses`: the sequence with its stored (drifted) poses replaced by
+  `info["true_poses"]`; one line when it has none."""
+  true_poses = seq.info.get("true_poses")
+  if true_poses is None:
+    raise ValueError(f"--true-poses: {data} has no true poses (only a drifting sequence "
+                     "carries them, e.g. office:0:drift)")
+  true_poses = np.asarray(true_poses, np.float32)
+  if true_poses.shape != seq.T_world_cam.shape:
+    raise ValueError(f"--true-poses: the true poses of {data} have shape {true_poses.shape}, "
+                     f"its poses {seq.T_world_cam.shape}")
+  return dataclasses.replace(seq, T_world_cam=true_poses)
+
+
 def run_command(args: argparse.Namespace) -> int:
   """Runs `jaxfusion run`: fuses one sequence with one rule, saves and scores the map."""
   rule = _rule(args)
@@ -123,6 +144,8 @@ def run_command(args: argparse.Namespace) -> int:
   seq = datasets.load_spec(spec, num_frames=args.frames, height=args.height, width=args.width,
                            layout_seed=flags.one_layout_seed(args), stride=args.stride,
                            label_space=args.label_space, label_tsv=args.label_tsv)
+  if args.true_poses:
+    seq = _at_true_poses(seq, args.data)
   mapper, num_classes = None, None
   with tqdm(total=len(seq), desc="fusing") as bar:
     for count, frames in _chunks(seq, _predictions(seq, args, class_map), RUN_CHUNK,
@@ -131,7 +154,8 @@ def run_command(args: argparse.Namespace) -> int:
         num_classes = frames.probs.shape[-1]
         rule = _rule(args, num_classes)          # a fitted rule's K checked against the data
         mapper = jf.Mapper(rule, num_classes=num_classes, voxel_size=args.voxel_size,
-                           capacity=args.capacity, geometry=flags.geometry_config(args))
+                           capacity=args.capacity, geometry=flags.geometry_config(args),
+                           free_space=bool(args.free_space))
       mapper.fuse_sequence(frames, seq.camera)
       bar.update(count)
   state = mapper.state
@@ -139,7 +163,8 @@ def run_command(args: argparse.Namespace) -> int:
     tqdm.write(f"the map grew from {old} to {new} slots after {frames_done} frames")
   voxels = jf.read_map(state)
   os.makedirs(args.out, exist_ok=True)
-  stem = os.path.join(args.out, f"{seq.name}_{rule.name}")
+  suffix = ("_true_poses" if args.true_poses else "") + ("_free" if args.free_space else "")
+  stem = os.path.join(args.out, f"{seq.name}_{rule.name}{suffix}")
   names = seq.class_names if len(seq.class_names) == num_classes else None
   scored = names is not None
   if class_map is not None and not _index_names(class_map.target_classes):
@@ -148,20 +173,27 @@ def run_command(args: argparse.Namespace) -> int:
     if seq.labels is not None and not scored:
       print(f"note: the class map's target classes are not the data's "
             f"{list(seq.class_names)}; the map is not scored")
-  extra = {"data": args.data, "sequence": seq.name}
+  extra = {"data": args.data, "sequence": seq.name, "free_space": bool(args.free_space),
+           "true_poses": bool(args.true_poses)}
   if class_map is not None:
     extra["class_map"] = str(args.class_map)
   io.save_map(stem + ".npz", state, rule, class_names=names, extra=extra,
               poses=seq.T_world_cam, camera=seq.camera, image_size=seq.image_size)
   io.export_ply(stem + ".ply", voxels, voxel_size=args.voxel_size,
                 colors=datasets.palette(num_classes if names is None else names))
-  print(f"map: {len(voxels['coords'])} voxels → {stem}.npz, {stem}.ply")
+  cleared = ""
+  if state.free_space is not None:
+    cleared = f" ({jf.map_stats(state)['free']} stored voxels cleared as free space)"
+  print(f"map: {len(voxels['coords'])} voxels{cleared} → {stem}.npz, {stem}.ply")
   if state.geometry is not None:
     surface = jf.extract_mesh(state)
     io.save_mesh(stem + "_mesh.ply", surface, colors=datasets.palette(
         num_classes if names is None else names), num_classes=num_classes)
     print(f"mesh: {surface.num_vertices} vertices, {surface.num_faces} triangles → "
           f"{stem}_mesh.ply")
+    if state.free_space is not None:
+      print("note: free space clears the semantic voxels, not the geometry layer: the mesh "
+            "may keep surfaces of objects that have since moved away")
   if seq.labels is not None and scored:
     gt = datasets.gt_voxel_labels(seq, voxel_size=args.voxel_size)
     gt_path = stem + "_gt.npz"
@@ -247,6 +279,12 @@ def add_parser(subparsers) -> None:
   run.add_argument("--capacity", type=int, default=2**16,
                    help="initial map capacity (a power of two); the map grows as needed")
   flags.add_geometry(run)
+  run.add_argument("--free-space", action="store_true",
+                   help="free-space clearing: voxels a later frame sees through are not read "
+                        "out, a re-hit free voxel restarts (docs/equations.md §10)")
+  run.add_argument("--true-poses", action="store_true",
+                   help="fuse a drifting sequence (e.g. office:0:drift) at its true poses "
+                        "instead of the drifted ones")
   flags.add_layout_seeds(run, default=[0], help_suffix=" (one; default 0)")
   flags.add_mc_seed(run, aliases=("--seed",))
   run.add_argument("--out", default="outputs/run")

@@ -288,9 +288,12 @@ def load(spec, options: DataOptions, *, front_end=None, gt: bool = True) -> Load
       skipped = len(sequence) - len(keep)
       tqdm.write(f"{name}: {skipped} of {len(sequence)} frames have no prediction in {folder}; "
                  "skipped")
-      info = dict(sequence.info, frame_ids=[_frame_ids(sequence)[i] for i in keep],
-                  skipped_without_prediction=skipped)
-      sequence = dataclasses.replace(sequence.subset(keep), info=info)
+      # The subset's own info: the entries that name frames (`gt_frames`, `true_poses`, …)
+      # follow the frames kept.
+      ids = _frame_ids(sequence)
+      sequence = sequence.subset(keep)
+      sequence = dataclasses.replace(sequence, info=dict(
+          sequence.info, frame_ids=[ids[i] for i in keep], skipped_without_prediction=skipped))
     source = f"precomputed predictions in {folder}"
   elif front_end == SIMULATED:
     preds = _simulated(spec, name, sequence, options)
@@ -411,7 +414,9 @@ class Streamed:
     return chunk_frames(self.image_size, k)
 
   def gt(self) -> dict:
-    """GT voxel labels of the frames that have predictions (a pass over the frames)."""
+    """GT voxel labels of the frames that have predictions (a pass over the frames); of a
+    changing world's final-scene frames, at its true poses (`ground_truth.gt_part`), as
+    `datasets.gt_voxel_labels` makes them."""
     from jaxfusion.datasets import ground_truth  # pylint: disable=import-outside-toplevel
     if not self.class_names:
       raise ValueError(f"{self.spec} has no GT labels to score against")
@@ -423,7 +428,7 @@ class Streamed:
                            "label-filt/; a saved sequence: labels)")
         keep = self._keep(chunk)
         if keep:
-          yield chunk if len(keep) == len(chunk) else chunk.subset(keep)
+          yield ground_truth.gt_part(chunk if len(keep) == len(chunk) else chunk.subset(keep))
 
     return ground_truth.gt_from_frames(labelled(), camera=self.camera,
                                        num_classes=len(self.class_names),

@@ -108,3 +108,19 @@ def test_context_bench_runs_on_tiny_frames(tmp_path):
   assert all(r["ms_per_frame"] > 0 for r in results["rows"].values())
   assert {(p["rule"], p["peer"]) for p in results["pairs"]} >= set(context_bench.PAIRS)
   assert "| learned_context |" in context_bench.to_markdown(results)
+
+
+def test_the_soak_with_free_space_clearing_on_finds_no_violation():
+  # A few calls of bench/fuzz.py through fuse_frame and fuse_sequence, clearing on: voxels are
+  # freed and restarted (frames look again from earlier poses), and every check of a cleared
+  # map holds (fuse_batch with clearing: tests/library/test_batch.py).
+  from bench import fuzz  # pylint: disable=import-outside-toplevel
+  soak = fuzz.Soak(0)
+  rng = np.random.default_rng(5)
+  for entry, shape, calls in (("frame", fuzz.FRAME_SHAPES[0], 12),
+                              ("sequence", fuzz.SEQUENCE_SHAPES[0], 2)):
+    for _ in range(calls):
+      soak.call(entry, shape, "bayes", rng, free_space=True)
+  assert not soak.violations, soak.examples
+  assert soak.counts["maps_checked_free_space"] >= 10
+  assert soak.counts["free_voxels_at_checks"] > 0 and soak.counts["restarted_voxels"] > 0

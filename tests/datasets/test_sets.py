@@ -105,3 +105,20 @@ def test_prediction_folders_are_named_after_the_sequence(tmp_path):
     sets.predictions_folder(str(tmp_path), embedded)
   (tmp_path / "office_0_test").mkdir()                      # the tuning commands' older layout
   assert sets.predictions_folder(str(tmp_path), embedded) == str(tmp_path / "office_0_test")
+
+
+def test_a_changing_world_never_shares_a_name_or_folder_with_its_static_one(tmp_path):
+  names = {text: sets.sequence_name(sets.expand([text])[0]) for text in (
+      "office:0:s1", "office:0:s1:moved", "office:0:moved:s1", "office:0:s1:final",
+      "office:0:s1:drift", "office:0:s1:shift0.5:drift")}
+  assert names["office:0:s1:moved"] == names["office:0:moved:s1"] == "office_0_test_s1_moved"
+  assert names["office:0:s1:shift0.5:drift"] == "office_0_test_s1_shift0.5_drift"
+  assert len(set(names.values())) == len(names) - 1           # only the two spellings agree
+  (tmp_path / "office_0_test").mkdir()                        # the static sequence's folder
+  moved = datasets.parse_spec("office:0:moved")
+  with pytest.raises(FileNotFoundError, match="office_0_test_moved"):
+    sets.predictions_folder(str(tmp_path), moved)
+  (tmp_path / "office_0_test_moved").mkdir()                  # its own name (`seq.name`)
+  assert sets.predictions_folder(str(tmp_path), moved) == str(tmp_path / "office_0_test_moved")
+  assert sets.predictions_folder(str(tmp_path), datasets.parse_spec("office:0")) == str(
+      tmp_path / "office_0_test")

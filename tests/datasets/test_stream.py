@@ -5,6 +5,7 @@ import pytest
 
 from jaxfusion import datasets
 from jaxfusion.datasets import export
+from jaxfusion.datasets import ground_truth
 from jaxfusion.datasets import stream
 
 
@@ -51,3 +52,25 @@ def test_stream_of_a_missing_folder_or_a_bad_chunk(tmp_path):
   (tmp_path / "meta.json").write_text('{"num_frames": 0}')
   with pytest.raises(ValueError, match="no readable frames"):
     stream.open_stream(f"saved:{tmp_path}")
+
+
+def _same_gt(got, want):
+  for key in ("coords", "labels", "hits"):
+    np.testing.assert_array_equal(got[key], want[key])
+
+
+@pytest.mark.parametrize("change", ["moved", "drift"])
+def test_streamed_gt_of_a_changing_world_is_its_gt(change, tmp_path):
+  # Chunks of 2 of 6 frames: the moved sequence's chunk 1 straddles the passes (t1 = 3).
+  size = dict(num_frames=6, height=24, width=32)
+  whole = datasets.load_spec(f"office:0:s3:{change}", **size)
+  want = datasets.gt_voxel_labels(whole)
+  whole.save(str(tmp_path / "seq"))
+  for spec in (f"office:0:s3:{change}", f"saved:{tmp_path / 'seq'}"):
+    chunks = list(stream.open_stream(spec, **size).chunks(2))
+    got = ground_truth.gt_from_frames(map(ground_truth.gt_part, chunks), camera=whole.camera,
+                                      num_classes=whole.num_classes)
+    _same_gt(got, want)
+  everything = ground_truth.gt_from_frames(chunks, camera=whole.camera,
+                                           num_classes=whole.num_classes)
+  assert len(everything["coords"]) != len(want["coords"])   # what gt_part leaves out counts

@@ -153,10 +153,12 @@ def test_far_keys_do_not_wrap_around():
   assert np.all(np.abs(out["coords"]) > 9000)
 
 
-def test_full_map_drops_counts_and_never_corrupts():
+@pytest.mark.parametrize("free_space", [False, True])
+def test_full_map_drops_counts_and_never_corrupts(free_space):
   rng = np.random.default_rng(0)
   rule = jf.rules.bayes()
-  state = jf.init_map(capacity=16, num_classes=h.NUM_CLASSES, voxel_size=0.05, rule=rule)
+  state = jf.init_map(capacity=16, num_classes=h.NUM_CLASSES, voxel_size=0.05, rule=rule,
+                      free_space=free_space)
   frame = h.random_frame(rng, voxel_size=0.05)
   state = jf.fuse_frame(state, frame, h.CAMERA, rule)
   with pytest.warns(jf.MapFullWarning):
@@ -295,12 +297,19 @@ def test_bad_camera_rule_and_map_arguments():
 
 
 @pytest.mark.slow
-def test_fuse_sequence_equals_a_loop_of_fuse_frame():
+@pytest.mark.parametrize("free_space", [False, True])
+def test_fuse_sequence_equals_a_loop_of_fuse_frame(free_space):
   rng = np.random.default_rng(11)
   frames = [h.random_frame(rng) for _ in range(3)]
+  if free_space:   # frame 2 looks from frame 0's pose at a wall behind it: voxels are freed
+    seen = np.isfinite(frames[0].depth) & (frames[0].depth > 0)
+    wall = np.where(np.isfinite(frames[2].depth) & (frames[2].depth > 0),
+                    frames[0].depth[seen].max() + 1.0, frames[2].depth).astype(np.float32)
+    frames[2] = frames[2]._replace(depth=wall, T_world_cam=frames[0].T_world_cam)
+    free_space = jf.FreeSpaceConfig(prob_miss=0.2)      # one miss frees a voxel hit once
   rule = jf.rules.robust()
   make = lambda: jf.init_map(capacity=512, num_classes=h.NUM_CLASSES, voxel_size=0.25,
-                             rule=rule)
+                             rule=rule, free_space=free_space)
   state = make()
   for f in frames:
     state = jf.fuse_frame(state, f, h.CAMERA, rule)
@@ -310,6 +319,7 @@ def test_fuse_sequence_equals_a_loop_of_fuse_frame():
   np.testing.assert_array_equal(a["coords"], b["coords"])
   np.testing.assert_allclose(a["posterior"], b["posterior"], atol=1e-6)
   np.testing.assert_array_equal(a["hits"], b["hits"])
+  assert (jf.map_stats(seq).get("free", 0) > 0) == bool(free_space)
 
 
 @pytest.mark.parametrize("bad", ["nan", "none", "inf"])

@@ -224,6 +224,24 @@ def test_same_rule_twice_gets_told_apart(tmp_path):
   assert names == ["Bayesian [a_bayes.npz]", "Bayesian [b_bayes.npz]"]
 
 
+def test_a_cleared_map_shows_what_it_reads_out(tmp_path):
+  rule = jf.rules.bayes()
+  state = jf.init_map(capacity=256, num_classes=len(NAMES), voxel_size=0.25, rule=rule,
+                      free_space=jf.FreeSpaceConfig(prob_miss=0.2))
+  probs = np.full((h.HEIGHT, h.WIDTH, len(NAMES)), 1 / len(NAMES), np.float32)
+  for z in (1.1, 3.1):            # a wall, then one behind it seen through the first
+    depth = np.full((h.HEIGHT, h.WIDTH), z, np.float32)
+    state = jf.fuse_frame(state, jf.Frame(depth, np.eye(4, dtype=np.float32), probs), h.CAMERA,
+                          rule)
+  io.save_map(str(tmp_path / "seqA_bayes.npz"), state, rule, class_names=NAMES,
+              extra={"sequence": "seqA"})
+  (m,) = sd.load_maps([str(tmp_path)])
+  stats = jf.map_stats(state)
+  assert m.name == "Bayesian + free space" and stats["free"] > 0
+  assert len(m.labels) == stats["occupied"] - stats["free"]
+  np.testing.assert_allclose(m.centers, jf.read_map(state)["centers"])
+
+
 def test_bad_inputs_raise_one_clear_error(tmp_path, run_folder):
   root, _, _ = run_folder
   with pytest.raises(FileNotFoundError, match="no such file or folder"):

@@ -23,9 +23,22 @@ def sequence(rng, length, height=h.HEIGHT, width=h.WIDTH):
   return jax.tree.map(lambda *x: np.stack(x), *frames)
 
 
-def sequential(seq, rule, camera=h.CAMERA):
-  state = jf.init_map(capacity=CAPACITY, num_classes=h.NUM_CLASSES, voxel_size=VOXEL, rule=rule)
+def sequential(seq, rule, camera=h.CAMERA, free_space=False):
+  state = jf.init_map(capacity=CAPACITY, num_classes=h.NUM_CLASSES, voxel_size=VOXEL, rule=rule,
+                      free_space=free_space)
   return jf.fuse_sequence(state, seq, camera, rule)
+
+
+def seen_again(seq, t, source):
+  """`seq` whose frame t looks from frame `source`'s pose at a wall 1 m behind all it saw (so
+  clearing frees what `source` saw); its own holes stay."""
+  depth = np.array(seq.depth)
+  seen = np.isfinite(depth[source]) & (depth[source] > 0)
+  keep = np.isfinite(depth[t]) & (depth[t] > 0)
+  depth[t] = np.where(keep, depth[source][seen].max() + 1.0, depth[t])
+  poses = np.array(seq.T_world_cam)
+  poses[t] = poses[source]
+  return seq._replace(depth=depth, T_world_cam=poses)
 
 
 def assert_same(a, b):
@@ -57,16 +70,22 @@ def test_ragged_batch_equals_sequential():
     assert_same(item(states, b), sequential(seq, rule, cam))
 
 
-def test_mask_makes_padding_neutral_even_with_real_data():
+@pytest.mark.parametrize("free_space", [False, True])
+def test_mask_makes_padding_neutral_even_with_real_data(free_space):
   rng = np.random.default_rng(1)
   seq = sequence(rng, 3)
+  if free_space:      # frame 2 sees through frame 0; one miss frees a voxel hit once
+    seq = seen_again(seq, 2, 0)
+    free_space = jf.FreeSpaceConfig(prob_miss=0.2)
   rule = jf.rules.bayes()
   mask = np.array([[True, False, True]])
   batched = jax.tree.map(lambda x: x[None], seq)
   states = batch.fuse_batch(batched, h.CAMERA, rule, capacity=CAPACITY, voxel_size=VOXEL,
-                            mask=mask)
+                            mask=mask, free_space=free_space)
   kept = jax.tree.map(lambda x: x[np.array([0, 2])], seq)
-  assert_same(item(states, 0), sequential(kept, rule))
+  one = sequential(kept, rule, free_space=free_space)
+  assert_same(item(states, 0), one)
+  assert (jf.map_stats(one).get("free", 0) > 0) == bool(free_space)
 
 
 def test_sweep_equals_one_rule_at_a_time():

@@ -46,7 +46,9 @@ class ViewMap:
 
   Attributes:
     path: the `.npz` file.
-    name: what the viewer calls it: the rule's paper name, β and aggregation ("D+R β=0.3").
+    name: what the viewer calls it: the rule's paper name, β and aggregation ("D+R β=0.3"),
+      and "+ free space" for a map with free-space clearing (its cleared voxels, which
+      `read_map` leaves out, are not shown).
     sequence: the sequence it was fused from (maps of one sequence share a view).
     class_names: the K class names (or "0" … "K-1" when the map has none).
     voxel_size: voxel edge in metres.
@@ -263,7 +265,8 @@ def load_view_map(path: str) -> ViewMap:
       mesh_gt = vertex_gt_labels(mesh.vertices, state.voxel_size, gt["coords"], gt["labels"])
       mesh_gt[mesh.labels < 0] = -1
   return ViewMap(
-      path=path, name=map_name(rule), sequence=str(sequence), class_names=names,
+      path=path, name=map_name(rule) + (" + free space" if state.free_space is not None else ""),
+      sequence=str(sequence), class_names=names,
       voxel_size=float(state.voxel_size), centers=voxels["centers"], labels=labels,
       hits=voxels["hits"], entropy=voxels["entropy"], confidence=confidence,
       gt_labels=gt_labels,
