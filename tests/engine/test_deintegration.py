@@ -135,6 +135,7 @@ def test_reintegrate_equals_fusing_at_the_new_poses(name):
   _assert_same_map(state, _fused(rule, corrected))
 
 
+@pytest.mark.slow
 def test_the_mapper_unfuses_reintegrates_and_rebuilds():
   rule = jf.rules.bayes()
   frames = [_frame(s) for s in range(5)]

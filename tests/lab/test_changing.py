@@ -30,6 +30,7 @@ def test_settings_compare_off_octomap_and_the_calibrated_clamp():
   assert list(three) == ["off", "on", "calibrated"] and three["calibrated"].clamp_max == 0.8
 
 
+@pytest.mark.slow
 def test_the_ghost_region_is_free_in_the_final_scene():
   options = sequences.DataOptions(num_frames=8, height=32, width=48, num_samples=2)
   moved = sequences.load("office:0:s1:moved", options, front_end=sequences.SIMULATED)
