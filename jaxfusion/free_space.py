@@ -10,8 +10,8 @@ A map made with `init_map(..., free_space=True)` (or a `FreeSpaceConfig`) carrie
     L    += l_hit where the frame's pixels hit the voxel, else l_miss where it is free
     L     = clip(L, l_min, l_max)                              (OctoMap's hit / miss / clamp)
 
-A voxel with `L ≤ l_occ` is free: it is not read out (`readout.observed`). A free voxel that a
-pixel hits again restarts as a new voxel would (change detection): its rule row returns to the
+A voxel with `L ≤ l_occ` is free: it is not read out (`state.observed_slots`). A free voxel that
+a pixel hits again restarts as a new voxel would (change detection): its rule row returns to the
 prior, its hit count to this frame's pixels and L to `l_hit`, so an object that moved in does not
 have to outvote what the voxel held before.
 
@@ -127,11 +127,13 @@ def init_free_space(capacity: int, config=True) -> Optional[FreeSpaceState]:
   return FreeSpaceState(log_odds=jnp.zeros(capacity, jnp.float32), config=config)
 
 
-def occupied(free: Optional[FreeSpaceState]) -> Optional[jax.Array]:
-  """`(C,) bool`: slots whose occupancy is above the threshold (None without the layer)."""
+def occupied(free: Optional[FreeSpaceState], slots=None) -> Optional[jax.Array]:
+  """`(C,) bool`: slots whose occupancy is above the threshold, or only at `slots` (a gather,
+  not a pass over C); None without the layer."""
   if free is None:
     return None
-  return free.log_odds > free.config.log_occupied
+  log_odds = free.log_odds if slots is None else free.log_odds[slots]
+  return log_odds > free.config.log_occupied
 
 
 def _min_shifted(x, step: int, axis: int):
@@ -226,7 +228,8 @@ def free_voxels(keys: jax.Array, voxel_size: jax.Array, depth: jax.Array,
 
 def mark(state, depth: jax.Array, T_world_cam: jax.Array, camera) -> jax.Array:
   """`(C,) bool` the voxels of `state` (a MapState with a free-space layer) that the frame
-  shows as free, before the frame's voxels are placed."""
+  shows as free. The engine marks after placing the frame's voxels: the new ones are hit, and a
+  hit wins (`apply`), so the result is that of marking before."""
   config = state.free_space.config
   margin = state.voxel_size if config.margin is None else jnp.float32(config.margin)
   return free_voxels(state.keys, state.voxel_size, depth, T_world_cam, camera, margin)
@@ -234,7 +237,7 @@ def mark(state, depth: jax.Array, T_world_cam: jax.Array, camera) -> jax.Array:
 
 def is_free(layer: FreeSpaceState) -> jax.Array:
   """`(C,) bool`: slots at or below the occupancy threshold (free, or never hit: empty)."""
-  return layer.log_odds <= layer.config.log_occupied
+  return ~occupied(layer)
 
 
 def apply(state, free: jax.Array, slot_of_group: jax.Array):

@@ -112,7 +112,8 @@ def _pixel_blocks(n: int) -> int:
 def _rows_update(rule: rules_base.FusionRule, chunk: int, observe: Callable,
                  kernel: Optional[Callable] = None):
   """The rule's update of the touched rows, as `f(rows, probs, var, ctx, hparams, segment,
-  counts, slot_of_group, num_groups, index) -> rows`, where `observe(probs, var, ctx, hparams)`
+  counts, slot_of_group, num_groups, index, fresh) -> rows` (`fresh (P,) bool` or None: groups
+  that start from the rule's empty row, free-space restarts), where `observe(probs, var, ctx, hparams)`
   gives the per-pixel terms of `(n, K)` inputs and `(n, F)` context (ctx None when the rule
   reads none).
 

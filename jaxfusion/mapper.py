@@ -231,7 +231,6 @@ class Mapper:
       ValueError: a frame id not held, or a rule / map that cannot be de-integrated.
     """
     self._held([frame_id])
-    deintegration.check_invertible(self.state, self.rule)
     frame, camera = self.kept[frame_id]
     self.state = deintegration.unfuse_frame(self.state, frame, camera, self.rule)
     del self.kept[frame_id]
@@ -260,8 +259,7 @@ class Mapper:
       by_camera.setdefault(self.kept[frame_id][1], []).append((frame_id, pose))
     for camera, items in by_camera.items():
       frames = [self.kept[frame_id][0] for frame_id, _ in items]
-      stack = fusion.Frame(*(None if frames[0][i] is None else np.stack([f[i] for f in frames])
-                             for i in range(len(frames[0]))))
+      stack = jax.tree.map(lambda *x: np.stack(x), *frames)
       new = np.stack([pose for _, pose in items]).astype(np.float32)
       self._ensure_room(np.asarray(stack.depth), new, camera)
       self.state = deintegration.reintegrate(self.state, stack, stack.T_world_cam, new, camera,
@@ -327,7 +325,8 @@ class Mapper:
       self.state = fusion.fuse_sequence(self.state, part, camera, self.rule)
       self.frames_fused += int(np.shape(part.depth)[0])
     if self.keep_frames:
+      host = jax.tree.map(np.asarray, frames)     # one transfer, not one per kept frame
       for t, frame_id in enumerate(ids[-self.keep_frames:], start=max(total - self.keep_frames,
                                                                         0)):
-        self._keep(frame_id, jax.tree.map(lambda x, t=t: np.asarray(x)[t], frames), camera)
+        self._keep(frame_id, jax.tree.map(lambda x, t=t: x[t], host), camera)
     return self.state

@@ -150,18 +150,22 @@ def observed_slots(state: MapState) -> jax.Array:
   with at least one pixel fused (a frame de-integrated to 0 hits leaves its key behind), and,
   with free space on, an occupancy above the threshold. Jittable; on a map without free space
   and de-integration it is exactly `keys != EMPTY`."""
-  stored = (state.keys[..., 0] != hashing.EMPTY) & (state.hits > 0)
+  stored = _fused_slots(state)
   occupied = free_space_lib.occupied(state.free_space)
   return stored if occupied is None else stored & occupied
+
+
+def _fused_slots(state: MapState) -> jax.Array:
+  """`(..., C) bool`: a stored key with at least one pixel fused."""
+  return (state.keys[..., 0] != hashing.EMPTY) & (state.hits > 0)
 
 
 def observed_at(state: MapState, slots: jax.Array) -> jax.Array:
   """`observed_slots` at some slots only (a gather, not a pass over C); slots from a lookup
   that found their key."""
   ok = state.hits[slots] > 0
-  if state.free_space is None:
-    return ok
-  return ok & (state.free_space.log_odds[slots] > state.free_space.config.log_occupied)
+  occupied = free_space_lib.occupied(state.free_space, slots)
+  return ok if occupied is None else ok & occupied
 
 
 def warn_if_dropped(num_dropped: int, capacity: int) -> None:
@@ -196,9 +200,8 @@ def map_stats(state: MapState) -> dict:
       "max_probes": state.max_probes,
   }
   if state.free_space is not None:
-    stored = np.asarray((state.keys[:, 0] != hashing.EMPTY) & (state.hits > 0))
-    stats["free"] = int(np.count_nonzero(stored & ~np.asarray(
-        free_space_lib.occupied(state.free_space))))
+    stats["free"] = int(np.count_nonzero(_fused_slots(state))) - int(
+        np.count_nonzero(observed_slots(state)))
   return stats
 
 

@@ -472,24 +472,38 @@ def _voxel_update(static):
   return update
 
 
-def integrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
-                        camera: camera_lib.Camera) -> TSDFState:
-  """`integrate`'s pure body (no checks, not jitted, nothing donated): for code that composes
-  the layer inside its own traced function (`fusion`, a user's `jax.jit`)."""
-  depth = jnp.asarray(depth, jnp.float32)
+def _frame_blocks(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
+                  camera: camera_lib.Camera):
+  """`(keys, first, num_groups)`: the block key of every ray sample of the frame's band
+  (§8.2), a sample of each distinct block (padded to whole insertion chunks) and how many there
+  are; what `integrate` inserts and `deintegrate` looks up."""
   keys, valid = band_block_keys(state, depth, T_world_cam, camera)
   groups = group_pixels(keys, valid)
   n = keys.shape[0]
   chunk = min(_INSERT_CHUNK, n)
   padded = -(-n // chunk) * chunk
-  first = jnp.pad(groups.first_pixel, (0, padded - n))
-  state, slot_of_group = _place_blocks(state, keys, first, groups.num_groups)
+  return keys, jnp.pad(groups.first_pixel, (0, padded - n)), groups.num_groups
+
+
+def _voxel_settings(state: TSDFState):
+  """`(static, params)` of the voxel stage: the layer's static settings as keywords and its
+  traced `(voxel_size, max_weight, max_depth)`."""
   static = dict(block_size=state.block_size, truncation_voxels=state.truncation_voxels,
                 weighting=state.weighting)
-  params = (state.voxel_size, state.max_weight, state.max_depth)
+  return static, (state.voxel_size, state.max_weight, state.max_depth)
+
+
+def integrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
+                        camera: camera_lib.Camera) -> TSDFState:
+  """`integrate`'s pure body (no checks, not jitted, nothing donated): for code that composes
+  the layer inside its own traced function (`fusion`, a user's `jax.jit`)."""
+  depth = jnp.asarray(depth, jnp.float32)
+  keys, first, num_groups = _frame_blocks(state, depth, T_world_cam, camera)
+  state, slot_of_group = _place_blocks(state, keys, first, num_groups)
+  static, params = _voxel_settings(state)
   sdf, weight = _voxel_update(static)(
       state.sdf, state.weight, depth, jnp.asarray(T_world_cam, jnp.float32), camera, params,
-      state.block_keys, slot_of_group, groups.num_groups)
+      state.block_keys, slot_of_group, num_groups)
   return state.replace(sdf=sdf, weight=weight)
 
 
@@ -576,16 +590,9 @@ def deintegrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.A
                           camera: camera_lib.Camera) -> TSDFState:
   """`deintegrate`'s pure body (no checks, not jitted, nothing donated; not differentiable)."""
   depth = jnp.asarray(depth, jnp.float32)
-  keys, valid = band_block_keys(state, depth, T_world_cam, camera)
-  groups = group_pixels(keys, valid)
-  n = keys.shape[0]
-  chunk = min(_INSERT_CHUNK, n)
-  padded = -(-n // chunk) * chunk
-  first = jnp.pad(groups.first_pixel, (0, padded - n))
-  slot_of_found, num_found = _find_blocks(state, keys, first, groups.num_groups)
-  static = dict(block_size=state.block_size, truncation_voxels=state.truncation_voxels,
-                weighting=state.weighting)
-  params = (state.voxel_size, state.max_weight, state.max_depth)
+  keys, first, num_groups = _frame_blocks(state, depth, T_world_cam, camera)
+  slot_of_found, num_found = _find_blocks(state, keys, first, num_groups)
+  static, params = _voxel_settings(state)
   T = jnp.asarray(T_world_cam, jnp.float32)
   kernel = lambda sdf, weight, block_keys: _unobserve_voxels(
       sdf, weight, block_keys, depth, T, camera, params, **static)
