@@ -18,6 +18,7 @@ from jaxfusion import batch
 from jaxfusion import context
 from jaxfusion import datasets
 from jaxfusion import deintegration
+from jaxfusion import distributed
 from jaxfusion import free_space
 from jaxfusion import io
 from jaxfusion import learn

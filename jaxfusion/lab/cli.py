@@ -52,8 +52,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-  """Parses `argv` (default `sys.argv[1:]`), runs the command, returns the exit status."""
+  """Parses `argv` (default `sys.argv[1:]`), runs the command, returns the exit status.
+
+  A command with `--processes N > 1` is started as N joined local processes
+  (`lab.processes.launch`); in each of them, and with `--distributed`, the distributed runtime
+  is joined first (`jaxfusion.distributed.initialize`)."""
+  argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser().parse_args(argv)
+  from jaxfusion.lab import processes   # pylint: disable=import-outside-toplevel
+  num_processes = getattr(args, "processes", 1)
+  if num_processes is not None and num_processes < 1:
+    print(f"jaxfusion {args.command}: error: --processes must be ≥ 1; got {num_processes}",
+          file=sys.stderr)
+    return 2
+  if (num_processes or 1) > 1 and not processes.is_worker():
+    return processes.launch(argv, num_processes, name=f"jaxfusion {args.command}")
+  if processes.is_worker() or getattr(args, "distributed", False):
+    from jaxfusion import distributed   # pylint: disable=import-outside-toplevel
+    try:
+      distributed.initialize(name=f"jaxfusion {args.command}")
+    except distributed.DistributedError as e:
+      print(f"jaxfusion {args.command}: error: {e}", file=sys.stderr)
+      return 2
   try:
     return int(args.func(args) or 0)
   except (ValueError, FileNotFoundError) as e:   # a CheckpointError is a ValueError

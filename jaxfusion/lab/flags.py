@@ -213,6 +213,20 @@ def add_study_run(parser: argparse.ArgumentParser, *, seed_aliases: Sequence[str
   add_learned_rule(parser)
 
 
+# --- several processes (jaxfusion.distributed, lab.processes) ---------------------------------
+def add_processes(parser: argparse.ArgumentParser) -> None:
+  """`--processes N` (start N joined local processes; `cli.main` launches them) and
+  `--distributed` (join a cluster's processes, `jax.distributed.initialize()` from the
+  scheduler's environment, e.g. under `srun`)."""
+  parser.add_argument("--processes", type=int, default=1, metavar="N",
+                      help="run as N processes on this machine, joined by JAX's distributed "
+                           "runtime (a coordinator on 127.0.0.1); each takes its share and "
+                           "process 0 writes the outputs, identical to one process's")
+  parser.add_argument("--distributed", action="store_true",
+                      help="join the processes a cluster scheduler started (SLURM, Open MPI, "
+                           "...: jax.distributed.initialize() reads its environment)")
+
+
 # --- your data: one set of flags for every command that runs on sequences ---------------------
 def add_data(parser: argparse.ArgumentParser, *, calibration: bool = False,
              validation: bool = False, required: bool = False,

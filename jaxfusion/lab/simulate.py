@@ -11,6 +11,7 @@ Shape legend: T frames, H×W pixels, K classes, X×Y sweep cells, D draws, R rul
 
 import argparse
 import functools
+import inspect
 import os
 import time
 from typing import NamedTuple, Optional, Sequence
@@ -462,7 +463,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--learned-select", choices=learn.SELECTIONS, default="loss",
                       help="what each fit's early stopping keeps: the lowest validation loss "
                            "or the highest validation map mIoU")
-  defaults = error_model()._asdict()
+  # The defaults from error_model's signature, not from calling it: building the parser must
+  # not start JAX's backend (a `--processes` run joins the distributed runtime after parsing).
+  defaults = {name: p.default for name, p in inspect.signature(error_model).parameters.items()
+              if p.default is not inspect.Parameter.empty}
   defaults["error_rate"] = 0.3
   for name in SWEEP_PARAMS:
     parser.add_argument(f"--{name.replace('_', '-')}", type=float,

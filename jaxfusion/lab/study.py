@@ -38,8 +38,14 @@ observations, headroom categories and α are computed by the library's `jaxfusio
   resamples for both methods.
 
 Outputs under OUT: `study.md`, `study.csv` (long format), `study.json` (summaries, per-sequence
-raw counts, config, timing), `miou_vs_shift.png`, `differences_vs_shift.png`, `headroom.png`,
-`alpha_hist.png`.
+raw counts, config), `timing.json` (seconds per stage, sequence and process),
+`miou_vs_shift.png`, `differences_vs_shift.png`, `headroom.png`, `alpha_hist.png`.
+
+**Several processes** (`--processes N` on one machine, `--distributed` on a cluster;
+`jaxfusion.distributed`): each process renders, predicts and fuses every N-th sequence of the
+grid, the per-sequence counts are gathered in grid order through JAX's collectives, and process
+0 computes the statistics and writes the outputs. What the study reports does not depend on N:
+study.json, the tables and the figures are the same bytes as one process writes.
 
 Shape legend: S sequences, T frames, H×W pixels, N = H·W, K classes, G GT voxels, P pixel
 observations, B bootstrap resamples.
@@ -57,6 +63,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import jaxfusion as jf
+from jaxfusion import distributed
 from jaxfusion.lab import config as config_lib
 from jaxfusion.lab import flags
 from jaxfusion.lab import frontend
@@ -650,23 +657,27 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
              if config.learned is not None else "")
           + (f"GLFS `{config.glfs_source or 'given parameters'}`; "
              if config.glfs is not None else "")
-          + "".join(f"variant {tag}; " for tag, _ in config.variants) +
-          f"{timing['total_s']:.0f} s in all ({timing['total_cpu_s']:.0f} s of CPU time).")
+          + "".join(f"variant {tag}; " for tag, _ in config.variants)).rstrip("; ") + "."
   if config.data:
     note += "".join(f" {r['sequence']}: {r['frames']} frames" + (
         f" ({r['skipped']} without a prediction, skipped)" if r.get("skipped") else "") + ";"
         for r in per_sequence)
   table = format_tables(summary, config, note)
   paths = {n: os.path.join(out_dir, n) for n in (
-      "study.md", "study.csv", "study.json", "miou_vs_shift.png", "differences_vs_shift.png",
-      "headroom.png", "alpha_hist.png")}
+      "study.md", "study.csv", "study.json", "timing.json", "miou_vs_shift.png",
+      "differences_vs_shift.png", "headroom.png", "alpha_hist.png")}
   reports.write_text(paths["study.md"], table)
   reports.write_text(paths["study.csv"], _csv(summary))
+  # What the study found (study.json, the tables, the figures) does not depend on how it was
+  # run: the same bytes from one process or several. How long it took goes to timing.json.
   reports.write_json(paths["study.json"], {
-      "config": dataclasses.asdict(config), "model": model_id, "timing": timing,
+      "config": dataclasses.asdict(config), "model": model_id,
       "headroom_categories": list(HEADROOM), "alpha_edges": ALPHA_EDGES,
       "summary": summary,
-      "sequences": [{k: v for k, v in r.items()} for r in per_sequence]}, indent=None)
+      "sequences": [{k: v for k, v in r.items() if k != "seconds"} for r in per_sequence]},
+      indent=None)
+  reports.write_json(paths["timing.json"], {
+      **timing, "sequences": {r["sequence"]: r.get("seconds") for r in per_sequence}}, indent=1)
 
   def curves(section, metric):
     names = summary[next(iter(summary))][section]
@@ -735,9 +746,13 @@ def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = N
   front_end = front_end if front_end is not None else frontend.FrontEnd(checkpoint)
   timing = {name: 0.0 for name in ("render_s", "front_end_s", "fusion_s", "render_cpu_s",
                                     "front_end_cpu_s", "fusion_cpu_s")}
-  per_sequence = []
+  local = {}
   run = config.run
-  for (seed, env, traj), shift in tqdm(run.grid, desc="study"):
+  grid = run.grid
+  mine = distributed.my_items(len(grid))   # all of them in one process
+  for index in tqdm(mine, desc="study" if distributed.process_count() == 1 else
+                    f"study, process {distributed.process_index()}"):
+    (seed, env, traj), shift = grid[index]
     t0, c0 = time.perf_counter(), time.process_time()
     seq = datasets.load_spec(datasets.SequenceSpec("synthetic", env, traj, run.domain),
                              num_frames=run.num_frames, height=run.height, width=run.width,
@@ -757,16 +772,27 @@ def run_study(config: StudyConfig, out_dir: str, *, cache_dir: Optional[str] = N
     result.update(unit=(int(seed), env, int(traj)), shift=float(shift),
                   sequence=f"{seq.name}_s{seed}_shift{float(shift):g}",
                   seconds={"wall": t3 - t0, "cpu": c3 - c0})
-    per_sequence.append(result)
+    local[index] = result
+  per_sequence = distributed.gather_items(local, len(grid))
   summary = summarize(per_sequence, config)
-  timing["total_s"] = time.perf_counter() - start
-  timing["total_cpu_s"] = time.process_time() - start_cpu
+  timing = _all_processes(timing, start, start_cpu)
   files = write_outputs(out_dir, summary, per_sequence, config, model_id=front_end.model_id,
-                        timing=timing)
+                        timing=timing) if distributed.is_main() else []
   timing["total_s"] = time.perf_counter() - start
-  timing["total_cpu_s"] = time.process_time() - start_cpu
+  distributed.barrier("study outputs written")
   return {"summary": summary, "table": format_tables(summary, config), "files": files,
           "timing": timing, "sequences": per_sequence}
+
+
+def _all_processes(timing: dict, start: float, start_cpu: float) -> dict:
+  """This process's stage times with the total so far, and (with several processes) every
+  process's under `processes` and the CPU time summed over them."""
+  timing = dict(timing, total_s=time.perf_counter() - start,
+                total_cpu_s=time.process_time() - start_cpu)
+  if distributed.process_count() == 1:
+    return timing
+  everyone = distributed.allgather_objects(timing)
+  return dict(timing, total_cpu_s=sum(t["total_cpu_s"] for t in everyone), processes=everyone)
 
 
 def fitted_for(config: StudyConfig, num_classes: int) -> StudyConfig:
@@ -821,16 +847,20 @@ def run_study_data(config: StudyConfig, out_dir: str, specs, options, *,
   if options.predictions is None and front_end is None:
     front_end = frontend.FrontEnd(checkpoint, class_names=None)
   model_id = front_end.model_id if options.predictions is None else "precomputed"
-  per_sequence, classes = [], None
-  for spec in tqdm(specs, desc="study"):
+  local, classes = {}, None
+  # Every process reads the first sequence's label space (a header, not its frames), so that
+  # all of them fit the same configuration, then fuses only its own share of the sequences.
+  # (An embedded first sequence is rendered for it; process 0, which fuses it, reuses it.)
+  first = sequences.Streamed(specs[0], options, front_end=front_end)
+  classes = first.class_names
+  config = fitted_for(dataclasses.replace(
+      config, data=tuple(str(s) for s in specs), class_names=classes), len(classes))
+  config.validate()
+  for index in tqdm(distributed.my_items(len(specs)), desc="study"):
+    spec = specs[index]
     t0, c0 = time.perf_counter(), time.process_time()
-    item = sequences.Streamed(spec, options, front_end=front_end)
-    if classes is None:
-      classes = item.class_names
-      config = fitted_for(dataclasses.replace(
-          config, data=tuple(str(s) for s in specs), class_names=classes), len(classes))
-      config.validate()
-    elif item.class_names != classes:
+    item = first if index == 0 else sequences.Streamed(spec, options, front_end=front_end)
+    if item.class_names != classes:
       raise ValueError(f"{item.name}: its classes {list(item.class_names)} are not the first "
                        f"sequence's {list(classes)}; one study, one label space")
     analysis = SequenceAnalysis(item.gt(), config, len(classes), grow=True)
@@ -845,12 +875,13 @@ def run_study_data(config: StudyConfig, out_dir: str, specs, options, *,
     result.update(unit=item.name, shift=DATA_GROUP, sequence=item.name, source=item.source,
                   frames=item.frames, skipped=item.skipped,
                   seconds={"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0})
-    per_sequence.append(result)
+    local[index] = result
+  per_sequence = distributed.gather_items(local, len(specs))
   summary = summarize(per_sequence, config)
-  timing = {"total_s": time.perf_counter() - start,
-            "total_cpu_s": time.process_time() - start_cpu}
+  timing = _all_processes({}, start, start_cpu)
   files = write_outputs(out_dir, summary, per_sequence, config, model_id=model_id,
-                        timing=timing)
+                        timing=timing) if distributed.is_main() else []
+  distributed.barrier("study outputs written")
   return {"summary": summary, "table": format_tables(summary, config), "files": files,
           "timing": timing, "sequences": per_sequence, "config": config}
 
@@ -869,6 +900,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                       seeds_help=f" (default 1 2 3; the demo uses {DEMO_SEED})")
   flags.add_glfs_rule(p)
   flags.add_data(p)
+  flags.add_processes(p)
   p.add_argument("--variant", action="append", default=[], metavar="TAG=PARAMS_JSON",
                  help="another learned rule (a learn-rule params.json) as a row "
                       "'Learned (TAG)', compared with Bayes and the learned row; repeatable")
@@ -891,14 +923,18 @@ def main(args: argparse.Namespace) -> int:
   if data is not None:
     options = flags.run_data_options(args, config.run)
     out = run_study_data(config, args.out, data, options, checkpoint=args.checkpoint)
+    if not distributed.is_main():
+      return 0
     print(out["table"])
     print(f"wrote {len(out['files'])} files under {args.out}/ in "
           f"{out['timing']['total_s']:.0f} s")
     return 0
   out = run_study(config.validate(), args.out, cache_dir=args.cache, checkpoint=args.checkpoint)
+  if not distributed.is_main():
+    return 0
   print(out["table"])
   t = out["timing"]
-  print(f"wrote {len(out['files'])} files under {args.out}/ (study.md/.csv/.json, "
+  print(f"wrote {len(out['files'])} files under {args.out}/ (study.md/.csv/.json, timing.json, "
         f"miou_vs_shift.png, differences_vs_shift.png, headroom.png, alpha_hist.png) in "
         f"{t['total_s']:.0f} s (render + GT {t['render_s']:.0f} s, front end "
         f"{t['front_end_s']:.0f} s, fusion and counts {t['fusion_s']:.0f} s; CPU time "

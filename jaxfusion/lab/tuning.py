@@ -13,6 +13,7 @@ import math
 import time
 from typing import Optional, Sequence
 
+import jax
 import numpy as np
 
 from jaxfusion import batch
@@ -521,6 +522,10 @@ def data_kwargs(args, front_end=None) -> dict:
 
 
 def _mesh(args):
+  """The devices to shard over: `--devices N`, or every device of every process when the
+  command runs as several processes (`--processes`, `--distributed`); None: one device."""
+  if args.devices is None and jax.process_count() > 1:
+    return batch.make_mesh()
   return None if args.devices in (None, 1) else batch.make_mesh(args.devices)
 
 
@@ -558,6 +563,7 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
   parser.add_argument("--beta-max", type=float, default=1.0)
   parser.add_argument("--plot", default=None, help="save a plot of mIoU against β here (PNG)")
   add_data_args(parser)
+  flags.add_processes(parser)
   parser.set_defaults(func=sweep_command)
   return parser
 
@@ -648,6 +654,9 @@ def sweep_command(args) -> int:
   if specs is not None:
     if len(specs) != 1:
       raise ValueError(f"sweep fuses one sequence: give one --data spec; got {len(specs)}")
+    if jax.process_count() > 1:
+      raise ValueError("sweep --data streams its sequence chunk by chunk in one process; "
+                       "--processes / --distributed shard the sweep of an embedded sequence")
     start = time.perf_counter()
     data, out = stream_sweep(specs[0], data_options(args), betas, rule=args.rule,
                              aggregate=args.aggregate, front_end=data_front_end(args))
@@ -661,6 +670,8 @@ def sweep_command(args) -> int:
                      capacity=data["capacity"], voxel_size=args.voxel_size, mesh=_mesh(args),
                      aggregate=args.aggregate)
     seconds = time.perf_counter() - start
+  if jax.process_index() != 0:
+    return 0   # every process holds the gathered result; process 0 reports it
   best = int(np.nanargmax(out["miou"]))
   print(f"{data['name']} ({data['source']}), rule {args.rule}, aggregate={args.aggregate}: "
         f"{len(betas)} β in one call, {seconds:.1f} s including compilation")
