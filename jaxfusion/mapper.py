@@ -18,6 +18,7 @@ Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
 import collections
+import concurrent.futures
 from typing import Optional
 
 import jax
@@ -70,6 +71,54 @@ def _valid_depth_count(depth) -> int:
   return int(np.count_nonzero(np.isfinite(depth) & (depth > 0)))
 
 
+def _shapes(tree, old: Optional[int] = None, new: Optional[int] = None):
+  """`tree`'s leaves as `jax.ShapeDtypeStruct`s, a leading dimension `old` made `new`."""
+  def one(x):
+    shape = tuple(np.shape(x))
+    if old is not None and shape and shape[0] == old:
+      shape = (new,) + shape[1:]
+    return jax.ShapeDtypeStruct(shape, jnp.result_type(x),
+                                weak_type=bool(getattr(x, "weak_type", False)))
+  return jax.tree.map(one, tree)
+
+
+def abstract_map(state: state_lib.MapState, capacity: int,
+                 geometry_capacity: Optional[int] = None) -> state_lib.MapState:
+  """The shapes of `state` grown to `capacity` slots (and its geometry layer to
+  `geometry_capacity` blocks): what `grow_map` / `grow_tsdf` would return, as
+  `ShapeDtypeStruct` leaves, for compiling the programs of a larger map before it exists."""
+  geometry = state.geometry
+  out = _shapes(state.replace(geometry=None), state.capacity, capacity)
+  if geometry is not None:
+    out = out.replace(geometry=_shapes(geometry, geometry.capacity,
+                                       geometry.capacity if geometry_capacity is None
+                                       else geometry_capacity))
+  return out
+
+
+def _compile_semantic(state, frame, camera, rule, capacity: int) -> None:
+  """Compiles (into JAX's cache) what a growth of the semantic table to `capacity` slots will
+  call: the rehash, the room check and `fuse_frame` at the new size. `state` and `frame` are
+  shapes only (`ShapeDtypeStruct` leaves)."""
+  depth = jax.ShapeDtypeStruct((1,) + tuple(frame.depth.shape), jnp.float32)
+  poses = jax.ShapeDtypeStruct((1, 4, 4), jnp.float32)
+  prior = jax.tree.map(lambda r: jax.ShapeDtypeStruct(r.shape[1:], r.dtype), state.rows)
+  state_lib.grown_map.lower(state, prior, capacity=capacity).compile()
+  grown = abstract_map(state, capacity)
+  new_voxel_count.lower(grown, depth, poses, camera).compile()
+  fusion.fuse_frame_donating.lower(grown, frame, camera, rule).compile()
+
+
+def _compile_geometry(state, frame, camera, rule, capacity: int) -> None:
+  """The same for a growth of the geometry layer to `capacity` blocks."""
+  depth = jax.ShapeDtypeStruct((1,) + tuple(frame.depth.shape), jnp.float32)
+  poses = jax.ShapeDtypeStruct((1, 4, 4), jnp.float32)
+  tsdf_lib.grown_tsdf.lower(state.geometry, capacity=capacity).compile()
+  grown = abstract_map(state, state.capacity, capacity)
+  tsdf_lib.new_block_count.lower(grown.geometry, depth, poses, camera).compile()
+  fusion.fuse_frame_donating.lower(grown, frame, camera, rule).compile()
+
+
 class Mapper:
   """A map that grows before it could fill up (see the module docstring).
 
@@ -87,6 +136,11 @@ class Mapper:
     geometry: a `tsdf.TSDFConfig` to carry a geometry layer (None: semantics only); its block
       table grows by the same rule, `grow_at` of its capacity, up to 2**24 blocks.
     free_space: free-space clearing (`init_map`'s option, docs/equations.md §10).
+    growth_factor: how many times larger each growth makes a table (2, 4 or 8).
+    compile_ahead: after the first frame and after each growth, compile on a background thread
+      the programs the next growth of each layer will need (the rehash, the room check and
+      `fuse_frame` at the larger size), so that a growth costs the rehash, not a compile
+      (`bench/growth.py`). Off: they compile when first called, on the frame that grows.
     keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
       `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
       A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
@@ -105,7 +159,8 @@ class Mapper:
                voxel_size: float = 0.1, capacity: int = 2**16, grow_at: float = 0.5,
                max_capacity: int = 2**30,
                max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None,
-               free_space=False, keep_frames: int = 0):
+               free_space=False, keep_frames: int = 0, growth_factor: int = 2,
+               compile_ahead: bool = True):
     if not 0.0 < grow_at < 1.0:
       raise ValueError(f"grow_at must lie in (0, 1); got {grow_at}")
     if not isinstance(max_capacity, (int, np.integer)) or max_capacity > 2**30:
@@ -113,7 +168,14 @@ class Mapper:
     if isinstance(keep_frames, bool) or not isinstance(keep_frames, (int, np.integer)) or (
         keep_frames < 0):
       raise ValueError(f"keep_frames must be an integer ≥ 0; got {keep_frames!r}")
+    if growth_factor not in (2, 4, 8):
+      raise ValueError(f"growth_factor must be 2, 4 or 8; got {growth_factor!r}")
     self.rule = rule
+    self.growth_factor = int(growth_factor)
+    self.compile_ahead = bool(compile_ahead)
+    # The background compile of the next growth's programs: (sizes it prepares, Future).
+    self._ahead = None
+    self._pool = None
     self.keep_frames = int(keep_frames)
     self.kept = collections.OrderedDict()
     self._free_space = free_space
@@ -150,10 +212,11 @@ class Mapper:
       return
     capacity = self.state.capacity
     while need > self.grow_at * capacity and capacity < self.max_capacity:
-      capacity *= 2
+      capacity = min(capacity * self.growth_factor, self.max_capacity)
     if capacity == self.state.capacity:
       return   # at max_capacity: fuse anyway; what does not fit is dropped and counted
     old = self.state.capacity
+    self.wait_for_compiles()   # not the same compile twice, here and in the background
     self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
     self.growths.append((self.frames_fused, old, capacity))
 
@@ -171,8 +234,9 @@ class Mapper:
     self._blocks_per_call = max(self._blocks_per_call or 0, new)
     capacity = geometry.capacity
     while blocks + new > self.grow_at * capacity and capacity < 2**24:
-      capacity *= 2
+      capacity = min(capacity * self.growth_factor, 2**24)
     if capacity != geometry.capacity:
+      self.wait_for_compiles()   # not the same compile twice, here and in the background
       self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
       self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
 
@@ -193,7 +257,40 @@ class Mapper:
     self.state = fusion.fuse_frame(self.state, frame, camera, self.rule)
     self.frames_fused += 1
     self._keep(frame_id, frame, camera)
+    if self.compile_ahead:
+      self._compile_ahead(frame, camera)
     return self.state
+
+  # --- the next growth's programs, compiled ahead of need ------------------------------------
+  def _compile_ahead(self, frame: fusion.Frame, camera) -> None:
+    """Starts compiling the next growth's programs for frames like `frame`, unless that is
+    under way or done for the current sizes. The layer nearer its limit goes first."""
+    geometry = self.state.geometry
+    key = (self.state.capacity, None if geometry is None else geometry.capacity,
+           tuple(np.shape(frame.depth)))
+    if self._ahead is not None and self._ahead[0] == key:
+      return
+    if self._pool is None:
+      self._pool = concurrent.futures.ThreadPoolExecutor(
+          max_workers=1, thread_name_prefix="jaxfusion-compile-ahead")
+    shapes, frame_shapes = _shapes(self.state), _shapes(frame)
+    jobs = []
+    slots = min(self.state.capacity * self.growth_factor, self.max_capacity)
+    if slots > self.state.capacity:
+      jobs.append((int(self.state.num_occupied) / self.state.capacity, _compile_semantic, slots))
+    if geometry is not None and geometry.capacity < 2**24:
+      jobs.append((int(geometry.num_blocks) / geometry.capacity, _compile_geometry,
+                   min(geometry.capacity * self.growth_factor, 2**24)))
+    jobs.sort(key=lambda job: -job[0])
+    self._ahead = (key, [self._pool.submit(fn, shapes, frame_shapes, camera, self.rule, size)
+                         for _, fn, size in jobs])
+
+  def wait_for_compiles(self) -> None:
+    """Blocks until the background compile of the next growth's programs (`compile_ahead`)
+    has finished. A failed compile is not an error here: a growth compiles what it calls
+    itself, and says why if that fails too."""
+    if self._ahead is not None:
+      concurrent.futures.wait(self._ahead[1])
 
   # --- kept frames: de-integration, re-integration, rebuild (docs/equations.md §11.3) -------
   def _new_id(self, frame_id, default):

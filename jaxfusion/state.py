@@ -205,11 +205,55 @@ def map_stats(state: MapState) -> dict:
   return stats
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "max_probes"))
-def _rehash(keys, active, *, capacity: int, max_probes: int):
-  result = hashing.insert(hashing.empty_table(capacity), jnp.zeros(capacity, jnp.int32), keys,
-                          active, max_probes=max_probes)
-  return result.table, result.slots, result.found
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def grown_map(state: MapState, prior, *, capacity: int):
+  """`grow_map`'s program (jitted, `capacity` static): the map rehashed into `capacity` slots.
+
+  Every slot of the old table is offered to the new one in slot order, the empty ones
+  inactive, so the program's shapes depend on the two capacities only (not on how many voxels
+  the map holds): a `Mapper` compiles it before it is needed.
+
+  Args:
+    state: an unbatched map of C slots (not donated).
+    prior: the rule's prior row, a dict of `(K,) float32` like one slot of `state.rows`.
+    capacity: the new number of slots C' ≥ C (a power of two).
+
+  Returns:
+    `(grown, lost)`: the map of C' slots, and `() int32` the voxels that found no slot within
+    the probe bound (the caller refuses a result with `lost > 0`).
+  """
+  occupied = state.keys[:, 0] != hashing.EMPTY
+  result = hashing.insert(hashing.empty_table(capacity), jnp.zeros(capacity, jnp.int32),
+                          state.keys, occupied, max_probes=state.max_probes)
+  # Where each old slot's voxel goes; empty slots (and lost voxels) go nowhere.
+  dest = jnp.where(occupied & result.found, result.slots, capacity)
+
+  def move(old_rows, prior_row):
+    fresh = jnp.tile(jnp.asarray(prior_row, jnp.float32)[None], (capacity, 1))
+    return fresh.at[dest].set(old_rows, mode="drop")
+
+  rows = jax.tree.map(move, state.rows, prior)
+  hits = jnp.zeros(capacity, jnp.int32).at[dest].set(state.hits, mode="drop")
+  free = state.free_space
+  if free is not None:
+    free = free.replace(
+        log_odds=jnp.zeros(capacity, jnp.float32).at[dest].set(free.log_odds, mode="drop"))
+  lost = jnp.sum(occupied & ~result.found, dtype=jnp.int32)
+  return state.replace(keys=result.table, rows=rows, hits=hits, free_space=free,
+                       claims=jnp.zeros(capacity, jnp.int32)), lost
+
+
+def prior_row(state: MapState, rule: Optional[rules_base.FusionRule] = None):
+  """The prior row of `state`'s rule (a dict of `(K,) float32`): the rule's, or the rows of an
+  empty slot (a slot whose key is EMPTY still holds the prior)."""
+  if rule is not None:
+    return jax.tree.map(lambda r: jnp.asarray(r, jnp.float32),
+                        rule.init(state.num_classes, rule.hparams))
+  occupied = np.asarray(state.keys[:, 0]) != hashing.EMPTY
+  if occupied.all():
+    raise ValueError("the map has no empty slot to take the prior from: pass its rule")
+  empty_slot = int(np.argmin(occupied))
+  return jax.tree.map(lambda r: r[empty_slot], state.rows)
 
 
 def grow_map(state: MapState, capacity: int, *,
@@ -217,7 +261,8 @@ def grow_map(state: MapState, capacity: int, *,
   """The same map in a larger table: every voxel keeps its rows (posterior, ᾱ, …) and hit
   count exactly; only the slots change.
 
-  Not jitted, and not jittable: the capacity is an array shape. Call it between frames (the
+  Not jittable (the capacity is an array shape), but one compiled program per old and new
+  capacity (`grown_map`, which `Mapper` compiles ahead of need). Call it between frames (the
   `Mapper` does, before a frame could push the load factor past its threshold).
 
   Args:
@@ -246,40 +291,9 @@ def grow_map(state: MapState, capacity: int, *,
     raise ValueError(f"grow_map cannot shrink a map: capacity {capacity} < {state.capacity}")
   if rule is not None and rule.name != state.rule_name:
     raise ValueError(f"rule {rule.name!r} does not match the map's {state.rule_name!r}")
-  keys = np.asarray(state.keys)
-  occupied = keys[:, 0] != hashing.EMPTY
-  old_slots = np.nonzero(occupied)[0]
-  if rule is not None:
-    prior = rule.init(state.num_classes, rule.hparams)
-  elif not occupied.all():
-    empty_slot = int(np.argmin(occupied))
-    prior = jax.tree.map(lambda r: r[empty_slot], state.rows)
-  else:
-    raise ValueError("the map has no empty slot to take the prior from: pass its rule")
-  # Pad the rehashed keys to a power of two so that growing sequences compile a few shapes.
-  n = max(len(old_slots), 1)
-  padded = 1 << (n - 1).bit_length()
-  rehash_keys = np.zeros((padded, 3), np.int32)
-  rehash_keys[:len(old_slots)] = keys[old_slots]
-  active = np.arange(padded) < len(old_slots)
-  table, slots, found = _rehash(jnp.asarray(rehash_keys), jnp.asarray(active),
-                                capacity=capacity, max_probes=state.max_probes)
-  found = np.asarray(found)[:len(old_slots)]
-  if not found.all():
-    raise ValueError(f"{int((~found).sum())} of {len(old_slots)} voxels found no slot within "
+  grown, lost = grown_map(state, prior_row(state, rule), capacity=capacity)
+  lost = int(lost)
+  if lost:
+    raise ValueError(f"{lost} of {int(state.num_occupied)} voxels found no slot within "
                      f"{state.max_probes} probes at capacity {capacity}: grow to a larger one")
-  new_slots = jnp.asarray(np.asarray(slots)[:len(old_slots)])
-  old = jnp.asarray(old_slots)
-
-  def move(old_rows, prior_row):
-    fresh = jnp.tile(jnp.asarray(prior_row, jnp.float32)[None], (capacity, 1))
-    return fresh.at[new_slots].set(old_rows[old])
-
-  rows = jax.tree.map(move, state.rows, prior)
-  hits = jnp.zeros(capacity, jnp.int32).at[new_slots].set(state.hits[old])
-  free = state.free_space
-  if free is not None:
-    free = free.replace(
-        log_odds=jnp.zeros(capacity, jnp.float32).at[new_slots].set(free.log_odds[old]))
-  return state.replace(keys=table, rows=rows, hits=hits, free_space=free,
-                       claims=jnp.zeros(capacity, jnp.int32))
+  return grown

@@ -735,17 +735,32 @@ def tsdf_stats(state: TSDFState) -> dict:
   }
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "max_probes"))
-def _rehash(keys, active, *, capacity: int, max_probes: int):
-  result = hashing.insert(hashing.empty_table(capacity), jnp.zeros(capacity, jnp.int32), keys,
-                          active, max_probes=max_probes)
-  return result.table, result.slots, result.found
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def grown_tsdf(state: TSDFState, *, capacity: int):
+  """`grow_tsdf`'s program (jitted, `capacity` static): the layer rehashed into `capacity`
+  block slots, every old slot offered in slot order (the empty ones inactive), so its shapes
+  depend on the two capacities only and a `Mapper` compiles it ahead of need.
+
+  Returns:
+    `(grown, lost)`: the layer, and `() int32` blocks that found no slot (refused if > 0).
+  """
+  stored = state.block_keys[:, 0] != hashing.EMPTY
+  result = hashing.insert(hashing.empty_table(capacity), jnp.zeros(capacity, jnp.int32),
+                          state.block_keys, stored, max_probes=state.max_probes)
+  dest = jnp.where(stored & result.found, result.slots, capacity)
+  voxels = state.block_size**3
+  sdf = jnp.zeros((capacity, voxels), jnp.float32).at[dest].set(state.sdf, mode="drop")
+  weight = jnp.zeros((capacity, voxels), jnp.float32).at[dest].set(state.weight, mode="drop")
+  lost = jnp.sum(stored & ~result.found, dtype=jnp.int32)
+  return state.replace(block_keys=result.table, claims=jnp.zeros(capacity, jnp.int32), sdf=sdf,
+                       weight=weight), lost
 
 
 def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
   """The same layer in a larger table: every block keeps its sdf and weight exactly.
 
-  Not jittable (the capacity is a shape); `Mapper` calls it between frames.
+  Not jittable (the capacity is a shape), but one compiled program per old and new capacity
+  (`grown_tsdf`, which `Mapper` compiles ahead of need); `Mapper` calls it between frames.
 
   Args:
     state: one layer; not donated.
@@ -763,24 +778,11 @@ def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
     raise ValueError(f"capacity must be a power of two ≤ 2**24; got {capacity!r}")
   if capacity < state.capacity:
     raise ValueError(f"grow_tsdf cannot shrink a layer: capacity {capacity} < {state.capacity}")
-  keys = np.asarray(state.block_keys)
-  old = np.nonzero(keys[:, 0] != hashing.EMPTY)[0]
-  n = max(len(old), 1)
-  padded = 1 << (n - 1).bit_length()
-  rehash_keys = np.zeros((padded, 3), np.int32)
-  rehash_keys[:len(old)] = keys[old]
-  table, slots, found = _rehash(jnp.asarray(rehash_keys), jnp.asarray(np.arange(padded) < len(old)),
-                                capacity=capacity, max_probes=state.max_probes)
-  if not np.asarray(found)[:len(old)].all():
-    raise ValueError(f"blocks found no slot within {state.max_probes} probes at capacity "
-                     f"{capacity}: grow to a larger one")
-  new = jnp.asarray(np.asarray(slots)[:len(old)])
-  old = jnp.asarray(old)
-  voxels = state.block_size**3
-  sdf = jnp.zeros((capacity, voxels), jnp.float32).at[new].set(state.sdf[old])
-  weight = jnp.zeros((capacity, voxels), jnp.float32).at[new].set(state.weight[old])
-  return state.replace(block_keys=table, claims=jnp.zeros(capacity, jnp.int32), sdf=sdf,
-                       weight=weight)
+  grown, lost = grown_tsdf(state, capacity=capacity)
+  if int(lost):
+    raise ValueError(f"{int(lost)} blocks found no slot within {state.max_probes} probes at "
+                     f"capacity {capacity}: grow to a larger one")
+  return grown
 
 
 @jax.jit

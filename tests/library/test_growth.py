@@ -114,6 +114,66 @@ def test_grow_map_and_mapper_validate():
     state_lib.grow_map(state, 2**11, rule=jf.rules.robust())
   with pytest.raises(ValueError, match="grow_at"):
     jf.Mapper(rule, num_classes=K, grow_at=1.5)
+  with pytest.raises(ValueError, match="growth_factor must be 2, 4 or 8; got 3"):
+    jf.Mapper(rule, num_classes=K, growth_factor=3)
   with pytest.raises(ValueError, match=r"\(T, H, W\)"):
     jf.Mapper(rule, num_classes=K).fuse_sequence(jax.tree.map(lambda x: x[0], _frames(1)),
                                                  CAMERA)
+
+
+def _main_thread_compiles():
+  """A list that records every backend compile on this thread while it is listened to."""
+  import threading
+  main = threading.current_thread()
+  seen = []
+
+  def listen(event, duration, **kwargs):
+    del duration, kwargs
+    if event == "/jax/core/compile/backend_compile_duration" and (
+        threading.current_thread() is main):
+      seen.append(event)
+  return seen, listen
+
+
+def test_abstract_map_is_the_shape_of_the_grown_map():
+  rule = jf.rules.robust()
+  state = jf.init_map(capacity=2**10, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(capacity=2**6), free_space=True)
+  state = jf.fuse_frame(state, jax.tree.map(lambda x: x[0], _frames(1)), CAMERA, rule)
+  grown = state_lib.grow_map(state, 2**12, rule=rule)
+  grown = grown.replace(geometry=jf.tsdf.grow_tsdf(grown.geometry, 2**8))
+  assert jax.tree.structure(mapper_lib.abstract_map(state, 2**12, 2**8)) == (
+      jax.tree.structure(grown))
+  assert mapper_lib.abstract_map(state, 2**12, 2**8) == mapper_lib._shapes(grown)
+  assert mapper_lib.abstract_map(state, 2**12) != mapper_lib._shapes(grown)
+
+
+@pytest.mark.parametrize("factor", [pytest.param(2, marks=pytest.mark.slow), 4])
+def test_compile_ahead_leaves_a_growth_no_compile_and_the_same_map(factor):
+  rule = jf.rules.robust()
+  frames = _frames(10)
+  config = jf.tsdf.TSDFConfig(capacity=2**6)
+  ahead = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, geometry=config,
+                    growth_factor=factor)
+  plain = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, geometry=config,
+                    growth_factor=factor, compile_ahead=False)
+  seen, listen = _main_thread_compiles()
+  jax.monitoring.register_event_duration_secs_listener(listen)
+  try:
+    growth_compiles = []
+    for t in range(10):
+      frame = jax.tree.map(lambda x, t=t: x[t], frames)
+      plain.fuse(frame, CAMERA)
+      ahead.wait_for_compiles()          # the background has had the time a real run gives it
+      before, grown = len(seen), len(ahead.growths) + len(ahead.geometry_growths)
+      ahead.fuse(frame, CAMERA)
+      if t >= 2 and len(ahead.growths) + len(ahead.geometry_growths) > grown:
+        growth_compiles.append(len(seen) - before)
+  finally:
+    jax.monitoring.unregister_event_duration_listener(listen)
+  assert growth_compiles and growth_compiles == [0] * len(growth_compiles), growth_compiles
+  assert ahead.growths == plain.growths and ahead.geometry_growths == plain.geometry_growths
+  assert all(new == old * factor for _, old, new in ahead.growths[1:])
+  _assert_same_map(ahead.state, plain.state)
+  np.testing.assert_array_equal(np.asarray(ahead.state.geometry.sdf),
+                                np.asarray(plain.state.geometry.sdf))
