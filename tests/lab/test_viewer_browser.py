@@ -6,6 +6,8 @@ JAXFUSION_REQUIRE_BROWSER=1 (set by .ci/run, which installs chromium), where the
 """
 
 import os
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -26,15 +28,17 @@ ABSENT = (1, 3, 5)           # bottle, table, sofa
 ENOUGH = 40                  # pixels of a colour for it to count as on the picture
 
 
-def _open(tmp_path_factory, geometry=None):
-  """`(viewer, page, shots folder)` of the floor maps (with a geometry layer if given)."""
+def _open(tmp_path_factory, geometry=None, *, mesh=True, **viewer_options):
+  """`(viewer, page, shots folder)` of the floor maps (with a geometry layer if given; loaded
+  without their meshes unless `mesh`), the viewer made with `viewer_options`."""
   if browser.find_chromium() is None:
     reason = "chromium is not installed (apt-get install chromium; .ci/run installs it)"
     if os.environ.get("JAXFUSION_REQUIRE_BROWSER") == "1":
       pytest.fail(reason)
     pytest.skip(reason)
-  maps = sd.load_maps(save_floor_maps(tmp_path_factory.mktemp("maps"), geometry=geometry))
-  viewer = server.MapViewer(maps, port=0)
+  maps = sd.load_maps(save_floor_maps(tmp_path_factory.mktemp("maps"), geometry=geometry),
+                      mesh=mesh)
+  viewer = server.MapViewer(maps, port=0, **viewer_options)
   try:
     page = browser.HeadlessPage(viewer.url, width=WIDTH, height=HEIGHT)
   except BaseException:
@@ -228,3 +232,58 @@ def test_switching_maps_keeps_the_camera(session):
 
   _wait(page, same_view, shots / "switched.png")
   np.testing.assert_allclose(client.camera.position, position, atol=1e-3)
+
+
+def _panel_shows(page, text, timeout=60):
+  """Waits until the page's panel shows `text`; returns the panel's text."""
+  deadline = time.monotonic() + timeout
+  while True:
+    panel = page.evaluate("document.body ? document.body.innerText : ''") or ""
+    if text in panel:
+      return panel
+    if time.monotonic() > deadline:
+      raise AssertionError(f"the panel did not show {text!r} within {timeout} s: {panel!r}")
+    time.sleep(0.2)
+
+
+def test_page_says_what_it_prepares_and_then_shows_the_mesh(tmp_path_factory, monkeypatch):
+  # The mesh's first stage waits for the test, so that the page can be seen meanwhile.
+  gate, prepare_mesh = threading.Event(), sd.prepare_mesh
+
+  def gated(m, *, progress=None):
+    def say(line):
+      progress(line)
+      if line.startswith("marching cubes"):
+        gate.wait(120)
+    return prepare_mesh(m, progress=say)
+
+  monkeypatch.setattr(sd, "prepare_mesh", gated)
+  viewer, page, shots = _open(tmp_path_factory, geometry=GEOMETRY, mesh=False,
+                              preview_voxels=300, prepare=False)
+  try:
+    m = viewer.current_map()
+    assert viewer.last_drawn["preview"] > 0 and viewer.last_drawn["mesh"] == 0
+    viewer.prepare_meshes()
+    # The progress line in the panel, and the coarse preview's cubes in the class hues.
+    panel = _panel_shows(page, "preparing mesh: marching cubes on")
+    assert "mesh: being prepared; meanwhile" in panel
+    preview = _scene(_wait(page, _lit_class_hues_problem("preview cube"),
+                           shots / "preparing.png"))
+    gate.set()
+    assert viewer.ready.wait(120)
+    faces = viewer.current_map().mesh.num_faces
+    assert viewer.last_drawn["mesh"] == faces and "preview" not in viewer.last_drawn
+    panel = _panel_shows(page, "ready: 2 mesh(es) prepared in")
+    assert f"mesh: {faces} of {faces} faces" in panel and "being prepared" not in panel
+    # The lit mesh replaced the cubes: the stripes' hues, on another picture.
+    def mesh_problem(pixels):
+      changed = np.any(pixels != preview, axis=1).mean()
+      return _lit_class_hues_problem("mesh")(pixels) or (
+          "" if changed > 0.05 else f"only {changed:.2%} of the preview's pixels changed")
+
+    _wait(page, mesh_problem, shots / "ready.png")
+    assert m.mesh is None and viewer.current_map().mesh is not None
+  finally:
+    gate.set()
+    page.close()
+    viewer.stop()

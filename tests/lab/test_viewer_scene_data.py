@@ -526,3 +526,95 @@ def test_maps_without_a_geometry_layer_or_faces_have_no_mesh(tmp_path, run_folde
   io.save_map(str(tmp_path / "empty.npz"), state, rule, class_names=NAMES)
   (m,) = sd.load_maps([str(tmp_path / "empty.npz")])
   assert m.mesh is None
+
+
+# A mesh made later, and the preview meanwhile ----------------------------------------------
+
+
+def test_a_mesh_left_for_later_is_the_one_load_makes(run_output):
+  _, out = run_output
+  (now,) = sd.load_maps([str(out)])
+  lines = []
+  (later,) = sd.load_maps([str(out)], mesh=False, progress=lines.append)
+  assert lines == [f"loading {now.path} (1 of 1) …"]
+  assert later.mesh is None and later.mesh_pending and not now.mesh_pending
+  # Until the mesh is there the map offers the modes its mesh will have (GT is beside it).
+  assert sd.mesh_color_modes(later) == sd.MESH_COLOR_MODES
+  assert sd.shown_layers(later, "mesh") == (True, False)
+  np.testing.assert_array_equal(later.labels, now.labels)
+  made = sd.prepare_mesh(later, progress=lines.append)
+  assert not made.mesh_pending and made.mesh_source is None
+  for got, want in zip(made.mesh, now.mesh):
+    np.testing.assert_array_equal(got, want)
+  np.testing.assert_array_equal(made.mesh_gt_labels, now.mesh_gt_labels)
+  faces, vertices = now.mesh.num_faces, now.mesh.num_vertices
+  blocks = int(later.mesh_source.state.geometry.num_blocks)
+  assert lines[1:] == [
+      f"marching cubes on {blocks} blocks of the geometry layer …",
+      f"labelling {vertices} vertices and {faces} faces from the semantic layer …",
+      f"GT labels of {vertices} vertices …"]
+  assert sd.prepare_mesh(made) is made   # nothing pending: nothing to do
+
+
+def test_a_map_without_geometry_or_faces_has_no_mesh_pending(tmp_path, run_folder):
+  root, _, _ = run_folder
+  for m in sd.load_maps([str(root)], mesh=False):
+    assert not m.mesh_pending and sd.prepare_mesh(m) is m
+    assert sd.shown_layers(m, "mesh") == (False, True)
+  rule = jf.rules.by_name("bayes")
+  state = jf.init_map(capacity=256, num_classes=len(NAMES), voxel_size=0.25, rule=rule,
+                      geometry=jf.TSDFConfig(capacity=2**4))   # nothing integrated: no face
+  io.save_map(str(tmp_path / "empty.npz"), state, rule, class_names=NAMES)
+  m = sd.load_view_map(str(tmp_path / "empty.npz"), mesh=False)
+  assert m.mesh_pending
+  lines = []
+  made = sd.prepare_mesh(m, progress=lines.append)
+  assert made.mesh is None and not made.mesh_pending and len(lines) == 1   # no face to label
+  assert sd.shown_layers(made, "mesh") == (False, True)
+
+
+def test_coarse_voxels_keep_one_voxel_of_each_coarse_cell():
+  rng = np.random.default_rng(0)
+  size = 0.1
+  keys = rng.permutation(np.unique(rng.integers(-20, 20, (3000, 3)), axis=0))
+  n = len(keys)
+  m = dataclasses.replace(
+      _view_map(rng.integers(0, len(NAMES), n), centers=(keys + 0.5) * size,
+                hits=rng.integers(1, 100, n), entropy=rng.uniform(0, 1, n),
+                confidence=rng.uniform(1, 9, n), gt_labels=rng.integers(-1, len(NAMES), n)),
+      voxel_size=size)
+  assert sd.coarse_voxels(m, max_voxels=n) is m   # small enough: as it is
+  c = sd.coarse_voxels(m, max_voxels=n // 10)
+  assert 0 < len(c) <= n // 10
+  f = int(round(c.voxel_size / size))
+  assert f >= 2 and f & (f - 1) == 0 and np.isclose(c.voxel_size, f * size)
+  # Cells of half the size would not have fitted: they are the smallest that do.
+  assert len(np.unique(keys // (f // 2), axis=0)) > n // 10
+  # Each cell holds its voxel nearest the cell's centre (the first of equals), with all its
+  # values, drawn at the centre: by a dictionary of the cells.
+  cells = {}
+  for i, key in enumerate(keys.tolist()):
+    cells.setdefault(tuple(k // f for k in key), []).append(i)
+  assert len(c) == len(cells)
+  palette = sd.class_palette(NAMES)
+  for j, centre in enumerate(c.centers):
+    cell = tuple(int(x) for x in np.floor(centre / c.voxel_size))
+    np.testing.assert_allclose(centre, (np.array(cell) + 0.5) * c.voxel_size, atol=1e-5)
+    members = cells.pop(cell)
+    twice_offset = [sum((2 * (keys[i][a] - cell[a] * f) - (f - 1)) ** 2 for a in range(3))
+                    for i in members]
+    nearest = members[int(np.argmin(twice_offset))]
+    for field in ("labels", "hits", "entropy", "confidence", "gt_labels"):
+      assert getattr(c, field)[j] == getattr(m, field)[nearest], field
+    np.testing.assert_array_equal(sd.voxel_colors(c, "class", palette)[j],
+                                  palette[m.labels[nearest]])
+  assert not cells   # every cell with a voxel has its cube
+  # So the cubes cover the voxels' bounds and reach less than a cell past them.
+  half = c.voxel_size / 2
+  lo, hi = m.centers.min(0) - size / 2, m.centers.max(0) + size / 2
+  np.testing.assert_array_less(c.centers.min(0) - half, lo + 1e-6)
+  np.testing.assert_array_less(hi - 1e-6, c.centers.max(0) + half)
+  np.testing.assert_array_less(lo - c.voxel_size, c.centers.min(0) - half)
+  np.testing.assert_array_less(c.centers.max(0) + half, hi + c.voxel_size)
+  with pytest.raises(ValueError, match="max_voxels"):
+    sd.coarse_voxels(m, max_voxels=0)

@@ -2,9 +2,11 @@
 command binds to 127.0.0.1, serves the page, and stops cleanly on Ctrl-C."""
 
 import os
+import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 
@@ -111,7 +113,7 @@ def test_large_maps_are_drawn_as_points(maps):
     viewer.stop()
 
 
-def test_view_command_serves_and_stops_on_ctrl_c(maps):
+def test_view_command_serves_says_what_it_does_and_stops_on_ctrl_c(mesh_maps):
   env = dict(os.environ, PYTHONUNBUFFERED="1")
   # Started with SIGINT ignored, as a background job of a non-interactive shell is (and as
   # this test's parent may be after other tests): Ctrl-C must still stop the viewer.
@@ -119,25 +121,54 @@ def test_view_command_serves_and_stops_on_ctrl_c(maps):
   launcher = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
               "os.execv(sys.executable, [sys.executable, '-m', 'jaxfusion.lab.cli', 'view', "
               "*sys.argv[1:]])")
-  proc = subprocess.Popen([sys.executable, "-c", launcher, maps[0].path, "--port", "0"],
+  path = mesh_maps[0].path
+  proc = subprocess.Popen([sys.executable, "-c", launcher, path, "--port", "0"],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-  try:
-    lines = []
-    deadline = time.monotonic() + 120
+  printed = queue.Queue()   # lines read by a thread: a command that goes quiet fails the test
+
+  def read_all():
+    for line in proc.stdout:
+      printed.put(line)
+    printed.put(None)
+
+  threading.Thread(target=read_all, daemon=True).start()
+
+  def read_until(start):
+    lines, deadline = [], time.monotonic() + 120
     while time.monotonic() < deadline:
-      line = proc.stdout.readline()
-      if not line:
+      try:
+        line = printed.get(timeout=max(deadline - time.monotonic(), 0.01))
+      except queue.Empty:
         break
-      lines.append(line)
-      if line.startswith("viewing "):
+      if line is None:
         break
+      lines.append(line.rstrip("\n"))
+      if start in line:
+        break
+    return lines
+
+  try:
+    # It says what it loads, serves the page as soon as the voxels are loaded ...
+    lines = read_until("viewing ")
     assert lines and lines[-1].startswith("viewing 1 map(s) of 1 sequence(s) at "
                                           "http://127.0.0.1:"), lines
+    assert any(line.endswith(f"] loading {path} (1 of 1) …") for line in lines), lines
     url = lines[-1].split(" at ")[1].split()[0]
     with urllib.request.urlopen(url, timeout=10) as r:
       assert r.status == 200 and b"<html" in r.read(2000).lower()
+    # ... and then prepares the mesh, one timed line per stage.
+    lines = read_until("] ready: ")
+    stages = [line.split("] ", 1)[1] for line in lines if line.startswith("[")]
+    name = mesh_maps[0].name
+    expected = ["preparing the mesh of 1 map(s)", f"{name}: preparing mesh: marching cubes on",
+                f"{name}: preparing mesh: labelling", f"{name}: preparing mesh: GT labels",
+                f"{name}: sending mesh: {mesh_maps[0].mesh.num_faces} faces …",
+                "ready: 1 mesh(es) prepared in"]
+    assert len(stages) == len(expected) and all(
+        stage.startswith(want) for stage, want in zip(stages, expected)), lines
     proc.send_signal(signal.SIGINT)
-    rest, _ = proc.communicate(timeout=30)
+    proc.wait(timeout=30)
+    rest = "".join(iter(printed.get, None))
     assert proc.returncode == 0, rest
     assert "viewer stopped" in rest and "Traceback" not in rest
   finally:
@@ -291,5 +322,90 @@ def test_maps_without_a_mesh_show_their_voxels(maps, mesh_maps):
   viewer = server.MapViewer(maps, port=0)
   try:
     assert not viewer.controls["show"].visible and viewer.controls["show"].value == "voxels"
+  finally:
+    viewer.stop()
+
+
+# Meshes made in the background ---------------------------------------------------------------
+
+
+def _record_removals(viewer) -> list:
+  """The scene nodes the viewer removes from now on (`scene.remove_by_name` wrapped)."""
+  removed, remove = [], viewer.server.scene.remove_by_name
+
+  def recording(name):
+    removed.append(name)
+    return remove(name)
+
+  viewer.server.scene.remove_by_name = recording
+  return removed
+
+
+def test_meshes_are_prepared_in_the_background_and_say_so(mesh_maps):
+  pending = sd.load_maps([m.path for m in mesh_maps], mesh=False)
+  bayes, dr = pending
+  lines = []
+  viewer = server.MapViewer(pending, port=0, preview_voxels=200, progress=lines.append,
+                            prepare=False)
+  try:
+    c = viewer.controls
+    sent, removed = _record_glbs(viewer), _record_removals(viewer)
+    # Before the meshes are there: the controls of a map with a mesh, and in the mesh's place
+    # the coarse preview of its voxels.
+    assert viewer.ready.is_set() is False and viewer.progress == []
+    assert c["show"].visible and c["show"].value == "mesh"
+    assert c["color"].options == tuple(sd.mode_titles(mesh_maps[0], "mesh").values())
+    preview = sd.coarse_voxels(bayes, max_voxels=200)
+    assert 0 < len(preview) <= 200 < len(bayes)
+    assert viewer.last_drawn == {"map": bayes.path, "mode": "class", "kind": None, "count": 0,
+                                 "mesh": 0, "preview": len(preview)}
+    c["show"].value = "voxels"   # the voxels themselves when asked for
+    assert viewer.last_drawn == {"map": bayes.path, "mode": "class", "kind": "cubes",
+                                 "count": len(bayes), "mesh": 0, "preview": 0}
+    c["show"].value = "mesh"
+    viewer.prepare_meshes()
+    viewer.prepare_meshes()   # once only
+    assert viewer.ready.wait(120)
+    # The full mesh replaced the preview, the same as made at load; the other map's is made too.
+    faces = mesh_maps[0].mesh.num_faces
+    assert viewer.last_drawn == {"map": bayes.path, "mode": "class", "kind": None, "count": 0,
+                                 "mesh": faces}
+    assert [name for name, _ in sent] == ["/mesh"] and _glb_faces(sent[0][1]) == faces
+    assert "/preview" in removed
+    for got, want in zip(viewer.current_map().mesh, mesh_maps[0].mesh):
+      np.testing.assert_array_equal(got, want)
+    c["map"].value = dr.name
+    assert viewer.last_drawn["mesh"] == mesh_maps[1].mesh.num_faces
+    assert "preview" not in viewer.last_drawn
+    # What it said, in order, to the callback as to the panel's line: the shown map first.
+    assert lines == viewer.progress
+    expected = ["preparing the mesh of 2 map(s); a coarse preview of the voxels is shown "
+                "meanwhile …"]
+    for i, m in enumerate(mesh_maps):
+      what = f"{m.name} ({i + 1} of 2)"
+      expected += [f"{what}: preparing mesh: marching cubes on",
+                   f"{what}: preparing mesh: labelling {m.mesh.num_vertices} vertices",
+                   f"{what}: preparing mesh: GT labels of {m.mesh.num_vertices} vertices",
+                   f"{what}: sending mesh: {m.mesh.num_faces} faces …"]
+    expected.append("ready: 2 mesh(es) prepared in ")
+    assert len(lines) == len(expected) and all(
+        line.startswith(want) for line, want in zip(lines, expected)), lines
+  finally:
+    viewer.stop()
+
+
+def test_a_mesh_that_cannot_be_made_is_said_and_its_voxels_shown(mesh_maps):
+  import dataclasses
+  (m,) = sd.load_maps([mesh_maps[0].path], mesh=False)
+  broken = dataclasses.replace(m, mesh_source=sd.MeshSource(state=None))
+  viewer = server.MapViewer([broken], port=0)
+  try:
+    assert viewer.ready.wait(60)
+    assert viewer.progress[-2].startswith(f"{m.name}: preparing the mesh failed: "
+                                          "AttributeError")
+    assert viewer.progress[-1].startswith("ready: 0 mesh(es) prepared in ")
+    assert "1 failed, the first: " + viewer.progress[-2] in viewer.progress[-1]
+    assert viewer.last_drawn == {"map": m.path, "mode": "class", "kind": "cubes",
+                                 "count": len(m)}   # no mesh: its voxels
   finally:
     viewer.stop()

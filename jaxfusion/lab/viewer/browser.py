@@ -18,7 +18,7 @@ import sys
 import tempfile
 import time
 import urllib.request
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -63,10 +63,13 @@ class HeadlessPage:
     width, height: viewport in CSS pixels.
     chromium: the executable (default: `find_chromium()`).
     timeout: seconds to wait for the browser to start.
+    init_scripts: JavaScript sources run in the page before its own scripts (e.g. to
+      instrument WebGL).
   """
 
   def __init__(self, url: str, *, width: int = 1280, height: int = 800,
-               chromium: Optional[str] = None, timeout: float = 30.0):
+               chromium: Optional[str] = None, timeout: float = 30.0,
+               init_scripts: Sequence[str] = ()):
     from websockets.sync.client import connect
     chromium = chromium or find_chromium()
     if chromium is None:
@@ -94,7 +97,8 @@ class HeadlessPage:
       self._ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=256 * 2**20,
                          open_timeout=timeout)
       self.call("Page.enable")
-      self.call("Page.addScriptToEvaluateOnNewDocument", source=_HIDE_RENDERER_NAME)
+      for source in (_HIDE_RENDERER_NAME, *init_scripts):
+        self.call("Page.addScriptToEvaluateOnNewDocument", source=source)
       self.call("Emulation.setDeviceMetricsOverride", width=width, height=height,
                 deviceScaleFactor=1, mobile=False)
       self.call("Page.navigate", url=url)

@@ -1,6 +1,8 @@
 """What the 3-D viewer shows, computed without the viewer: finding and loading saved maps,
 validating them, colouring voxels (and the mesh of a map with a geometry layer) in each colour
-mode, the legend, filtering by class and height, and choosing cubes or points. Nothing here
+mode, the legend, filtering by class and height, and choosing cubes or points. A map's mesh can
+be left for later at load (`load_view_map(..., mesh=False)`) and made by `prepare_mesh`, which
+says what it is doing; `coarse_voxels` is the map's cheap preview meanwhile. Nothing here
 imports viser.
 
 Shape legend: N voxels, K classes, T frames, P mesh vertices, F mesh faces.
@@ -11,7 +13,7 @@ import html
 import os
 import zipfile
 import zlib
-from typing import Iterable, Optional, Sequence
+from typing import Callable, Iterable, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -38,6 +40,23 @@ MESH_CONFIDENCE_TITLE = "confidence (max posterior)"
 SHOW_CHOICES = ("mesh", "voxels", "mesh + voxels")
 DEFAULT_MAX_CUBES = 200_000
 COLORMAP = "viridis"
+# While a mesh is being prepared its map is shown as at most this many coarse voxels, drawn as
+# cubes (`coarse_voxels`): light enough for a software-rendered page (all 153 k voxels of
+# bench/viewer_open.py's corridor as cubes took it 15 s to draw and slowed the meshing beside
+# it almost 3×).
+DEFAULT_PREVIEW_VOXELS = 20_000
+
+
+class MeshSource(NamedTuple):
+  """What the mesh of a map loaded with `mesh=False` is made from (by `prepare_mesh`).
+
+  Attributes:
+    state: the loaded MapState (its geometry layer gives the surface, its semantic layer the
+      vertices' labels).
+    gt: the GT voxel labels saved beside the map (`load_gt`), or None.
+  """
+  state: object
+  gt: Optional[dict] = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -68,6 +87,8 @@ class ViewMap:
     mesh_gt_labels: `(P,) int32` GT label of the (semantic-size) voxel each mesh vertex lies
       in (−1 where the GT has no voxel there or the vertex has no label), or None without a
       mesh or a GT map.
+    mesh_source: for a map loaded with `mesh=False` whose geometry layer is not meshed yet,
+      what `prepare_mesh` makes the mesh from (`mesh` is None until then); else None.
   """
   path: str
   name: str
@@ -84,6 +105,12 @@ class ViewMap:
   camera: Optional[dict] = None
   mesh: Optional[object] = None
   mesh_gt_labels: Optional[np.ndarray] = None
+  mesh_source: Optional[MeshSource] = None
+
+  @property
+  def mesh_pending(self) -> bool:
+    """True while the map's geometry layer is loaded but not meshed yet (`prepare_mesh`)."""
+    return self.mesh_source is not None
 
   def __len__(self) -> int:
     return int(len(self.labels))
@@ -232,8 +259,14 @@ def map_name(rule) -> str:
   return name
 
 
-def load_view_map(path: str) -> ViewMap:
+def load_view_map(path: str, *, mesh: bool = True) -> ViewMap:
   """Loads one map file (and the GT saved beside it) for display.
+
+  Args:
+    path: the map file.
+    mesh: extract the mesh of a map with a geometry layer now (the largest part of loading a
+      building-sized map); False leaves it to `prepare_mesh` (`mesh_source` holds what it
+      needs).
 
   Raises:
     FileNotFoundError / ValueError: no file, or not a map file.
@@ -254,25 +287,50 @@ def load_view_map(path: str) -> ViewMap:
   gt = None if gt_file is None else load_gt(gt_file)
   gt_labels = None if gt is None else gt_labels_for(voxels["coords"], gt)
   trajectory = io.load_trajectory(path)
-  mesh = mesh_gt = None
-  if state.geometry is not None:
-    mesh = jf.extract_mesh(state)
-    if mesh.num_faces == 0:
-      mesh = None
-    elif gt is not None:
-      # The GT where the vertex is, whichever voxel its label was read from (extract_mesh may
-      # fill a vertex outside the map from a neighbouring voxel).
-      mesh_gt = vertex_gt_labels(mesh.vertices, state.voxel_size, gt["coords"], gt["labels"])
-      mesh_gt[mesh.labels < 0] = -1
-  return ViewMap(
+  view = ViewMap(
       path=path, name=map_name(rule) + (" + free space" if state.free_space is not None else ""),
       sequence=str(sequence), class_names=names,
       voxel_size=float(state.voxel_size), centers=voxels["centers"], labels=labels,
       hits=voxels["hits"], entropy=voxels["entropy"], confidence=confidence,
       gt_labels=gt_labels,
       poses=None if trajectory is None else trajectory["T_world_cam"],
-      camera=None if trajectory is None else trajectory["camera"], mesh=mesh,
-      mesh_gt_labels=mesh_gt)
+      camera=None if trajectory is None else trajectory["camera"],
+      mesh_source=None if state.geometry is None else MeshSource(state, gt))
+  return prepare_mesh(view) if mesh else view
+
+
+def prepare_mesh(m: ViewMap, *, progress: Optional[Callable[[str], None]] = None) -> ViewMap:
+  """`m` with its mesh made from `m.mesh_source` (`m` itself when it has none pending): the
+  geometry layer's surface, each vertex labelled from the semantic layer, as
+  `jf.extract_mesh(state)` gives it, and the GT label of each vertex when a GT map is saved
+  beside the map. `mesh` stays None when the surface has no face.
+
+  Args:
+    m: a map loaded with `load_view_map(..., mesh=False)`.
+    progress: called with one line before each stage (marching cubes, labelling, GT), e.g.
+      "marching cubes on 13546 blocks …".
+  """
+  from jaxfusion import mesh as mesh_lib  # pylint: disable=import-outside-toplevel
+  if m.mesh_source is None:
+    return m
+  say = progress or (lambda _: None)
+  state, gt = m.mesh_source
+  say(f"marching cubes on {int(state.geometry.num_blocks)} blocks of the geometry layer …")
+  vertices, faces = mesh_lib.marching_cubes(state.geometry)
+  mesh = mesh_gt = None
+  if len(faces):
+    say(f"labelling {len(vertices)} vertices and {len(faces)} faces from the semantic "
+        "layer …")
+    mesh = mesh_lib.label_mesh(
+        mesh_lib.Mesh(vertices=vertices, faces=faces,
+                      normals=mesh_lib.vertex_normals(vertices, faces)), state)
+    if gt is not None:
+      say(f"GT labels of {len(vertices)} vertices …")
+      # The GT where the vertex is, whichever voxel its label was read from (extract_mesh may
+      # fill a vertex outside the map from a neighbouring voxel).
+      mesh_gt = vertex_gt_labels(mesh.vertices, state.voxel_size, gt["coords"], gt["labels"])
+      mesh_gt[mesh.labels < 0] = -1
+  return dataclasses.replace(m, mesh=mesh, mesh_gt_labels=mesh_gt, mesh_source=None)
 
 
 def check_same_classes(maps: Sequence[ViewMap]) -> None:
@@ -284,16 +342,27 @@ def check_same_classes(maps: Sequence[ViewMap]) -> None:
                        f"{list(first.class_names)}, {m.path} has {list(m.class_names)}")
 
 
-def load_maps(paths: Sequence[str]) -> list:
+def load_maps(paths: Sequence[str], *, mesh: bool = True,
+              progress: Optional[Callable[[str], None]] = None) -> list:
   """Finds, loads and validates the maps named by `paths` (files or folders).
 
   Maps of one sequence with the same name (e.g. the same rule in two folders) get the file
   name added so that every map can be told apart.
 
+  Args:
+    paths: map files or folders holding them.
+    mesh: extract the meshes now (False: leave them to `prepare_mesh`; see `load_view_map`).
+    progress: called with one line before each file is loaded ("loading a.npz (1 of 3) …").
+
   Raises:
     FileNotFoundError / ValueError: see `find_map_files`; maps of different class lists.
   """
-  maps = [load_view_map(p) for p in find_map_files(paths)]
+  files = find_map_files(paths)
+  maps = []
+  for i, path in enumerate(files):
+    if progress is not None:
+      progress(f"loading {path} ({i + 1} of {len(files)}) …")
+    maps.append(load_view_map(path, mesh=mesh))
   check_same_classes(maps)
   counts = {}
   for m in maps:
@@ -453,18 +522,24 @@ def visible_mask(m: ViewMap, *, hidden_classes: Iterable[int] = (),
 
 def shown_layers(m: ViewMap, show: str) -> tuple:
   """`(mesh, voxels)`: which layers of `m` are drawn for the "Show" choice `show` (one of
-  `SHOW_CHOICES`). A map without a mesh always shows its voxels, whatever `show` says."""
+  `SHOW_CHOICES`). A map without a mesh always shows its voxels, whatever `show` says; a map
+  whose mesh is being prepared (`mesh_pending`) shows what `show` says, the mesh once it is
+  there."""
   if show not in SHOW_CHOICES:
     raise ValueError(f"show must be one of {list(SHOW_CHOICES)}; got {show!r}")
-  if m.mesh is None:
+  if m.mesh is None and not m.mesh_pending:
     return False, True
   return show != "voxels", show != "mesh"
 
 
 def mesh_color_modes(m: ViewMap) -> tuple:
-  """The colour modes the mesh of `m` supports (none without a mesh; correct needs GT)."""
+  """The colour modes the mesh of `m` supports (none without a mesh; correct needs GT, which a
+  mesh still being prepared will have when a GT map is saved beside the map)."""
   if m.mesh is None:
-    return ()
+    if not m.mesh_pending:
+      return ()
+    return tuple(mode for mode in MESH_COLOR_MODES
+                 if mode != "correct" or m.mesh_source.gt is not None)
   return tuple(mode for mode in MESH_COLOR_MODES
                if mode != "correct" or m.mesh_gt_labels is not None)
 
@@ -599,6 +674,44 @@ def mesh_face_mask(m: ViewMap, *, hidden_classes: Iterable[int] = (),
   if max_height is not None:
     keep &= mesh.vertices[mesh.faces][:, :, up_axis].mean(axis=1) <= max_height
   return keep
+
+
+def coarse_voxels(m: ViewMap, *, max_voxels: int = DEFAULT_PREVIEW_VOXELS) -> ViewMap:
+  """`m` with its voxels thinned to at most `max_voxels` on a coarser grid: the first picture
+  of a map whose mesh is being prepared. The grid's cells are f = 2, 4, 8 … voxels a side (the
+  smallest f that fits), aligned on the voxel grid; each keeps the one of its voxels nearest
+  the cell's centre (the first in the map's order of those as near), with all its values
+  (class, entropy, ᾱ, hits, GT), moved to the cell's centre, and `voxel_size` is the cell's
+  edge. So the coarse cubes cover every voxel of `m`, and each shows the class of one of
+  them. A map of at most `max_voxels` voxels is returned as it is.
+  """
+  if max_voxels < 1:
+    raise ValueError(f"max_voxels must be ≥ 1; got {max_voxels}")
+  if len(m) <= max_voxels:
+    return m
+  keys = np.round(np.asarray(m.centers, np.float64) / m.voxel_size - 0.5).astype(np.int64)
+  f = 1
+  while True:
+    f *= 2
+    cells = np.floor_divide(keys, f)
+    # Twice the offset from the cell's centre, in voxels: odd integers, so ties are exact.
+    off_centre = np.sum((2 * (keys - cells * f) - (f - 1)) ** 2, axis=1)
+    low = cells.min(axis=0)
+    span = cells.max(axis=0) - low + 1
+    code = ((cells[:, 0] - low[0]) * span[1] + cells[:, 1] - low[1]) * span[2] + (
+        cells[:, 2] - low[2])
+    order = np.lexsort((off_centre, code))   # stable: equals stay in the map's order
+    first = np.ones(len(order), bool)
+    first[1:] = code[order[1:]] != code[order[:-1]]
+    if first.sum() <= max_voxels:
+      break
+  keep = order[first]
+  cell = m.voxel_size * f
+  pick = lambda x: None if x is None else np.asarray(x)[keep]
+  return dataclasses.replace(
+      m, voxel_size=float(cell), centers=((cells[keep] + 0.5) * cell).astype(np.float32),
+      labels=pick(m.labels), hits=pick(m.hits), entropy=pick(m.entropy),
+      confidence=pick(m.confidence), gt_labels=pick(m.gt_labels))
 
 
 def mesh_part(m: ViewMap, keep: np.ndarray, colors: np.ndarray) -> tuple:

@@ -5,12 +5,19 @@ its voxels as cubes (points beyond `max_cubes`), a colour mode with its legend, 
 classes, a height cut, and the camera trajectory as frustums. Switching maps replaces the mesh
 and voxels only, so the camera stays where the user left it. What is drawn is computed by
 `scene_data`; this module only shows it.
+
+Maps loaded without their meshes (`scene_data.load_maps(..., mesh=False)`, as `serve` does)
+are served at once: a coarse preview of their voxels is drawn while a background thread makes
+the meshes, once for every page (viser replays the scene to each page that opens). A progress
+line at the top of the panel, and the `progress` callback (the command line), say what is
+being done.
 """
 
+import dataclasses
 import signal
 import threading
 import time
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import viser
@@ -39,17 +46,45 @@ class MapViewer:
       map without one shows its voxels whatever it says.
     last_drawn: what the last redraw drew: "map" (path), "mode", "kind" ("cubes", "points",
       or None when the voxels are not shown) and "count" (voxels drawn); for a map with a
-      mesh also "mesh" (faces drawn, 0 when the mesh is not shown).
+      mesh, or one being prepared, also "mesh" (faces drawn, 0 when the mesh is not shown or
+      not there yet); while it is being prepared, also "preview" (the preview's cubes drawn).
+    progress: the progress lines shown so far, oldest first (the last one is in the panel).
+    ready: a `threading.Event` set once every map's mesh is prepared and drawn (at once when
+      none was pending).
+
+  While a map's mesh is being prepared, its place is taken by a coarse preview of its voxels
+  (`scene_data.coarse_voxels`, at most `preview_voxels` cubes), coloured by class, entropy or
+  right / wrong as the mesh would be (by class in the confidence mode); "Show" voxels or
+  mesh + voxels draws the voxels themselves instead.
+
+  Args:
+    maps: the maps (of one class list); those loaded with `mesh=False` get their meshes
+      in the background.
+    preview_voxels: the most cubes of the preview shown while a mesh is being prepared.
+    progress: also called with each progress line (e.g. `print`).
+    prepare: start making the pending meshes at once (False: when `prepare_meshes` is
+      called, e.g. after the page's address is printed).
   """
 
   def __init__(self, maps: Sequence[sd.ViewMap], *, host: str = "127.0.0.1", port: int = 8080,
                max_cubes: int = sd.DEFAULT_MAX_CUBES, max_frustums: int = 40,
+               preview_voxels: int = sd.DEFAULT_PREVIEW_VOXELS,
+               progress: Optional[Callable[[str], None]] = None, prepare: bool = True,
                verbose: bool = False):
     if not maps:
       raise ValueError("MapViewer needs at least one map")
     sd.check_same_classes(maps)
     if max_cubes < 0:
       raise ValueError(f"max_cubes must be ≥ 0; got {max_cubes}")
+    if preview_voxels < 1:
+      raise ValueError(f"preview_voxels must be ≥ 1; got {preview_voxels}")
+    self._preview_voxels = int(preview_voxels)
+    self._previews = {}   # path → coarse_voxels of a map whose mesh is being prepared
+    self._on_progress = progress
+    self.progress = []
+    self.ready = threading.Event()
+    self._stopped = False
+    self._preparing = None   # the thread making the pending meshes
     self._maps = sd.by_sequence(maps)
     self._all = list(maps)
     self._palette = sd.class_palette(maps[0].class_names)
@@ -76,6 +111,10 @@ class MapViewer:
     self.server.initial_camera.up = (0.0, 0.0, 1.0)
     self._build_gui()
     self.redraw()
+    if not any(m.mesh_pending for m in self._all):
+      self.ready.set()
+    elif prepare:
+      self.prepare_meshes()
 
   @property
   def url(self) -> str:
@@ -90,10 +129,11 @@ class MapViewer:
     first = self._maps[sequences[0]]
     c = {}
     gui.add_markdown(f"**jaxfusion** · {len(self._all)} map(s)")
+    self._progress = gui.add_markdown("")
     c["sequence"] = gui.add_dropdown("Sequence", sequences, initial_value=sequences[0],
                                      visible=len(sequences) > 1)
     c["map"] = gui.add_dropdown("Map", list(first), initial_value=next(iter(first)))
-    any_mesh = any(m.mesh is not None for m in self._all)
+    any_mesh = any(m.mesh is not None or m.mesh_pending for m in self._all)
     c["show"] = gui.add_dropdown("Show", list(sd.SHOW_CHOICES),
                                  initial_value="mesh" if any_mesh else "voxels",
                                  visible=any_mesh,
@@ -180,15 +220,33 @@ class MapViewer:
       max_height = None if cut >= self._height_max else cut
       show_mesh, show_voxels = sd.shown_layers(m, self.controls["show"].value)
       self.controls["draw"].visible = show_voxels
-      faces = self._draw_mesh(m, mode, hidden, max_height) if show_mesh else self._remove_mesh()
+      pending = show_mesh and m.mesh is None
+      faces = (self._draw_mesh(m, mode, hidden, max_height) if show_mesh and not pending
+               else self._remove_mesh())
       legend, status = [], []
-      if show_mesh:
+      if pending and not show_voxels:
+        preview = self._preview(m)
+        # Entropy and right/wrong mean the same on voxels and mesh; confidence does not.
+        preview_mode = mode if mode in ("entropy", "correct") and mode in sd.color_modes(
+            preview) else "class"
+        _, shown = self._draw_voxels(preview, preview_mode, hidden, max_height,
+                                     node="/preview", kind="cubes")
+        legend += sd.legend(m, preview_mode, self._palette)
+        status.append(f"mesh: being prepared; meanwhile {shown} voxels of "
+                      f"{preview.voxel_size:g} m (a coarse preview of {len(m)})")
+      else:
+        self.server.scene.remove_by_name("/preview")
+        shown = 0
+      if pending and show_voxels:
+        status.append("mesh: being prepared")
+      elif show_mesh and not pending:
         legend += sd.mesh_legend(m, mode, self._palette)
         status.append(f"mesh: {faces} of {m.mesh.num_faces} faces")
       if show_voxels:
         kind, count = self._draw_voxels(m, mode, hidden, max_height)
         voxel_legend = sd.legend(m, mode, self._palette)
-        legend += [("voxels", None), *voxel_legend] if show_mesh else voxel_legend
+        legend += [("voxels", None), *voxel_legend] if show_mesh and not pending else (
+            voxel_legend)
         status.append(f"{count} of {len(m)} voxels ({m.voxel_size:g} m), drawn as {kind}")
       else:
         self.server.scene.remove_by_name("/voxels")
@@ -197,8 +255,10 @@ class MapViewer:
       self._status.content = "; ".join(status)
       self._draw_trajectory(m)
       self.last_drawn = {"map": m.path, "mode": mode, "kind": kind, "count": int(count)}
-      if m.mesh is not None:
+      if m.mesh is not None or m.mesh_pending:
         self.last_drawn["mesh"] = int(faces)
+      if m.mesh_pending:
+        self.last_drawn["preview"] = int(shown)
 
   def _draw_mesh(self, m: sd.ViewMap, mode: str, hidden: list, max_height) -> int:
     """Draws the mesh's visible faces with per-vertex colours; returns how many."""
@@ -222,24 +282,32 @@ class MapViewer:
     self._mesh_drawn = None
     return 0
 
-  def _draw_voxels(self, m: sd.ViewMap, mode: str, hidden: list, max_height) -> tuple:
-    """Draws the visible voxels as cubes or points; returns `(kind, count)`."""
+  def _preview(self, m: sd.ViewMap) -> sd.ViewMap:
+    if m.path not in self._previews:
+      self._previews[m.path] = sd.coarse_voxels(m, max_voxels=self._preview_voxels)
+    return self._previews[m.path]
+
+  def _draw_voxels(self, m: sd.ViewMap, mode: str, hidden: list, max_height, *,
+                   node: str = "/voxels", kind: Optional[str] = None) -> tuple:
+    """Draws the visible voxels at `node` as cubes or points (`kind`; None: as the "Draw as"
+    control says); returns `(kind, count)`."""
     keep = sd.visible_mask(m, hidden_classes=hidden, max_height=max_height, up_axis=_UP_AXIS)
     colors = sd.voxel_colors(m, mode, self._palette)[keep]
     centers = m.centers[keep]
-    kind = sd.representation(len(centers), self._max_cubes, self.controls["draw"].value)
+    if kind is None:
+      kind = sd.representation(len(centers), self._max_cubes, self.controls["draw"].value)
     scene = self.server.scene
     if len(centers) == 0:
-      scene.remove_by_name("/voxels")
+      scene.remove_by_name(node)
     elif kind == "cubes":
       scene.add_batched_meshes_simple(
-          "/voxels", _BOX_VERTICES * m.voxel_size, _BOX_FACES,
+          node, _BOX_VERTICES * m.voxel_size, _BOX_FACES,
           batched_wxyzs=np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0], np.float32),
                                         (len(centers), 4)),
           batched_positions=centers, batched_colors=colors, flat_shading=True, lod="off",
           cast_shadow=False, receive_shadow=False)
     else:
-      scene.add_point_cloud("/voxels", centers, colors, point_size=m.voxel_size,
+      scene.add_point_cloud(node, centers, colors, point_size=m.voxel_size,
                             point_shape="square", point_shading="flat", precision="float32")
     return kind, int(len(centers))
 
@@ -271,24 +339,103 @@ class MapViewer:
     if self._trajectory_root is not None:
       self._trajectory_root.visible = show
 
+  def _report(self, line: str):
+    """Shows `line` as the panel's progress line and passes it to the `progress` callback."""
+    self.progress.append(line)
+    if not self._stopped:
+      self._progress.content = f"*{line}*" if line.endswith("…") else line
+    if self._on_progress is not None:
+      self._on_progress(line)
+
+  def _replace_map(self, old: sd.ViewMap, new: sd.ViewMap):
+    """Puts `new` where `old` was and redraws when it is the map shown."""
+    with self._lock:
+      if self._stopped:
+        return
+      self._maps[old.sequence][old.name] = new
+      self._all = [new if m is old else m for m in self._all]
+      if not new.mesh_pending:
+        self._previews.pop(new.path, None)
+      if self.current_map() is new:
+        self._map_changed()
+
+  def prepare_meshes(self):
+    """Starts making the pending meshes in a background thread (once; `ready` is set when
+    done), the shown map's first."""
+    with self._lock:
+      if self._preparing is not None or self.ready.is_set():
+        return
+      pending = sum(m.mesh_pending for m in self._all)
+      self._report(f"preparing the mesh of {pending} map(s); a coarse preview of the voxels is "
+                   "shown meanwhile …")
+      self._preparing = threading.Thread(target=self._prepare_meshes,
+                                         name="jaxfusion-view-meshes", daemon=True)
+      self._preparing.start()
+
+  def _prepare_meshes(self):
+    start = time.monotonic()
+    shown = self.current_map()
+    pending = sorted((m for m in self._all if m.mesh_pending), key=lambda m: m is not shown)
+    failed = []
+    try:
+      for i, m in enumerate(pending):
+        if self._stopped:
+          return
+        what = m.name if len(pending) == 1 else f"{m.name} ({i + 1} of {len(pending)})"
+        try:
+          full = sd.prepare_mesh(m, progress=lambda line, w=what: self._report(
+              f"{w}: preparing mesh: {line}"))
+        except Exception as e:   # pylint: disable=broad-except
+          # Said in the page and on the command line (not lost in a thread); the map shows
+          # its voxels, and the other maps' meshes are still made.
+          failed.append(f"{what}: preparing the mesh failed: {type(e).__name__}: {e}")
+          self._report(failed[-1])
+          full = dataclasses.replace(m, mesh_source=None)
+        if full.mesh is not None:
+          self._report(f"{what}: sending mesh: {_thousands(full.mesh.num_faces)} faces …")
+        self._replace_map(m, full)
+      if not self._stopped:
+        self._report(f"ready: {len(pending) - len(failed)} mesh(es) prepared in "
+                     f"{time.monotonic() - start:.1f} s"
+                     + (f"; {len(failed)} failed, the first: {failed[0]}" if failed else ""))
+    finally:
+      self.ready.set()
+
   def stop(self):
+    with self._lock:
+      self._stopped = True
     self.server.stop()
+
+
+def _thousands(n: int) -> str:
+  """`412345` → "412 k" (counts of faces in progress lines)."""
+  return f"{n / 1000:.0f} k" if n >= 10_000 else str(n)
 
 
 def serve(paths: Sequence[str], *, host: str = "127.0.0.1", port: int = 8080,
           max_cubes: int = sd.DEFAULT_MAX_CUBES, duration: Optional[float] = None) -> None:
-  """Loads the maps named by `paths`, serves them, and blocks until Ctrl-C (or `duration` s).
+  """Loads the maps named by `paths`, serves them, and blocks until Ctrl-C (or `duration` s
+  after the address is printed). The page is served once the voxels are loaded; the meshes are
+  made after, in the background (`MapViewer.prepare_meshes`). Every stage is printed as one
+  line with the seconds since the start.
 
   Raises:
     FileNotFoundError / ValueError: a bad path, a file that is not a map, maps of different
       class lists (see `scene_data.load_maps`).
   """
-  maps = sd.load_maps(paths)
-  viewer = MapViewer(maps, host=host, port=port, max_cubes=max_cubes)
+  start = time.monotonic()
+
+  def say(line):
+    print(f"[{time.monotonic() - start:5.1f} s] {line}", flush=True)
+
+  maps = sd.load_maps(paths, mesh=False, progress=say)
   sequences = len({m.sequence for m in maps})
+  viewer = MapViewer(maps, host=host, port=port, max_cubes=max_cubes, progress=say,
+                     prepare=False)
   print(f"viewing {len(maps)} map(s) of {sequences} sequence(s) at {viewer.url}  "
         "(Ctrl-C stops)", flush=True)
-  start = time.monotonic()
+  viewer.prepare_meshes()
+  serving = time.monotonic()
   # A process started with SIGINT ignored (a background job of a non-interactive shell, or a
   # parent that ignores it) inherits that, and Python then installs no KeyboardInterrupt
   # handler: Ctrl-C / `kill -INT` would be lost and the server would run forever. The viewer
@@ -297,7 +444,7 @@ def serve(paths: Sequence[str], *, host: str = "127.0.0.1", port: int = 8080,
   if threading.current_thread() is threading.main_thread():
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
   try:
-    while duration is None or time.monotonic() - start < duration:
+    while duration is None or time.monotonic() - serving < duration:
       time.sleep(0.2)
   except KeyboardInterrupt:
     pass
