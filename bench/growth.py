@@ -1,131 +1,196 @@
-"""`python -m bench.growth [--quick]`: what a growing map costs.
+"""`python -m bench.growth [--quick]`: what a growing map costs over a long walk.
 
-A camera walks along a corridor of rough walls (random depths 1–6 m, 5 cm voxels), so every
-frame adds thousands of new voxels and a `Mapper` started at 2^14 slots grows several times.
-It reports, per frame, the time of `Mapper.fuse` (median and max between growths, with the
-growths apart) against `fuse_frame` on a map allocated at the final capacity from the start,
-and the time of each `grow_map` against the capacity it grows to. Writes
-`bench/results/growth.json` and prints a Markdown table.
+A camera walks 2,000 frames down a 60 m corridor (2.4 m wide, 2.7 m high, rough walls; 120×160
+depth, K = 13, D+R) into a `Mapper` with a 5 cm geometry layer, both starting small (2^14 slots,
+2^10 blocks), so each layer grows several times. Each configuration of the `Mapper` (growth
+factor 2, 4 or 8, `compile_ahead` off or on) runs the same frames in a fresh process of its
+own (its programs compiled by itself), and is timed frame by frame beside the same frames fused
+into a map allocated at the final capacities from the start (compiled first): the flat
+baseline. Reported:
+
+* growth share: (time of the growing run − time of the fixed map) / time of the growing run,
+  the first frame (a compile in either run) left out of both — everything growth costs, the
+  background compiles' use of the cores included;
+* the frames that grew a layer: each one's time, and their excess over the median frame;
+* the worst frame apart from the first (the longest stall) and the first frame.
+
+The last configuration is a user's second run of the same walk with JAX's persistent
+compilation cache on, as the `jaxfusion` commands turn it on (`jaxfusion.lab.compile_cache`):
+a first run fills a fresh cache folder, the second is timed.
+
+Writes `bench/results/growth.json` and prints a Markdown table. `--quick`: 300 frames at 60×80.
 """
 
 import argparse
 import json
+import os
 import pathlib
+import subprocess
+import sys
+import tempfile
 import time
 
-import jax
 import numpy as np
 
-import jaxfusion as jf
-from jaxfusion import state as state_lib
-
 K = 13
+LENGTH, HALF_WIDTH, HEIGHT = 60.0, 1.2, 2.7
+# (name, growth factor, compile_ahead, persistent compilation cache warmed by a first run)
+CONFIGS = (("factor 2, compile on the frame that grows", 2, False, False),
+           ("factor 2, compile ahead", 2, True, False),
+           ("factor 4, compile on the frame that grows", 4, False, False),
+           ("factor 4, compile ahead", 4, True, False),
+           ("factor 8, compile on the frame that grows", 8, False, False),
+           ("factor 4, a repeat run with JAX's persistent compilation cache", 4, False, True))
 
 
-def frames(num_frames: int, height: int, width: int, seed: int = 0):
-  rng = np.random.default_rng(seed)
-  for t in range(num_frames):
-    depth = rng.uniform(1.0, 6.0, (height, width)).astype(np.float32)
-    pose = np.eye(4, dtype=np.float32)
-    pose[0, 3] = 0.8 * t
-    probs = rng.dirichlet(np.ones(K), (height, width)).astype(np.float32)
-    var = rng.uniform(0.0, 0.05, (height, width, K)).astype(np.float32)
-    yield jf.Frame(depth, pose, probs, var)
+def corridor_depth(T_world_cam: np.ndarray, camera, height: int, width: int) -> np.ndarray:
+  """`(H, W) float32` z-depth of the corridor's rough walls, floor and ceiling from a pose."""
+  v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+  rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)],
+                  -1) @ T_world_cam[:3, :3].T
+  origin = T_world_cam[:3, 3]
+  t = np.full((height, width), np.inf)
+  for axis, lo, hi in ((0, -1.0, LENGTH + 1.0), (1, -HALF_WIDTH, HALF_WIDTH), (2, 0.0, HEIGHT)):
+    with np.errstate(divide="ignore", invalid="ignore"):
+      for bound in (lo, hi):
+        hit = (bound - origin[axis]) / rays[..., axis]
+        t = np.minimum(t, np.where(hit > 0, hit, np.inf))
+  p = origin + t[..., None] * rays
+  bump = (0.04 * np.sin(7.0 * p[..., 0]) * np.cos(5.0 * p[..., 2])
+          + 0.03 * np.sin(13.0 * p[..., 1] + 3.0 * p[..., 0]))
+  return (t + bump).astype(np.float32)     # t is the z-depth: the rays have z = 1
 
 
-def _timed(fn):
-  start = time.perf_counter()
-  out = fn()
-  jax.block_until_ready(out)
-  return out, time.perf_counter() - start
+def walk(num_frames: int) -> np.ndarray:
+  """`(T, 4, 4)` poses down the corridor at eye height, looking left and right as it goes."""
+  poses = np.tile(np.eye(4, dtype=np.float32), (num_frames, 1, 1))
+  for i in range(num_frames):
+    yaw = 0.9 * np.sin(i / 40.0)
+    forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+    poses[i, :3, 0], poses[i, :3, 1], poses[i, :3, 2] = right, (0.0, 0.0, -1.0), forward
+    poses[i, :3, 3] = (0.3 + (LENGTH - 0.6) * i / max(num_frames - 1, 1),
+                       0.3 * np.sin(i / 70.0), 1.4)
+  return poses
 
 
-def run(num_frames: int, height: int, width: int) -> dict:
+def _data(num_frames: int, height: int, width: int):
+  import jaxfusion as jf
   camera = jf.Camera(0.6 * width, 0.6 * width, (width - 1) / 2, (height - 1) / 2)
+  poses = walk(num_frames)
+  depth = [corridor_depth(p, camera, height, width) for p in poses]
+  rng = np.random.default_rng(0)
+  probs = rng.dirichlet(np.ones(K), (8, height, width)).astype(np.float32)
+  var = rng.uniform(0.0, 0.05, (8, height, width, K)).astype(np.float32)
+  frames = [jf.Frame(d, p, probs[i % 8], var[i % 8]) for i, (d, p) in enumerate(zip(depth, poses))]
+  return frames, camera
+
+
+def run_one(num_frames: int, height: int, width: int, factor: int, ahead: bool) -> dict:
+  """One configuration, in this process: the growing run and the fixed-capacity baseline."""
+  import jax
+  import jaxfusion as jf
+  frames, camera = _data(num_frames, height, width)
   rule = jf.rules.robust()
-  data = list(frames(num_frames, height, width))
-  # Warm-up: compile the step at every capacity the run will reach, and the checks.
-  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14)
-  for frame in data:
-    mapper.fuse(frame, camera)
-  final_capacity = mapper.capacity
-  grown_to = [c for _, _, c in mapper.growths]
-  # Growing run, timed frame by frame (a frame whose call grew the map is a growth frame).
-  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14)
-  per_frame, growth_frames = [], []
-  for t, frame in enumerate(data):
-    before = len(mapper.growths)
-    _, seconds = _timed(lambda f=frame: mapper.fuse(f, camera).rows)
-    (growth_frames if len(mapper.growths) > before else per_frame).append((t, seconds))
-  # grow_map alone, at each capacity the run grew to (from a map holding what it held then).
-  grow_times = []
-  replay = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14)
-  for t, frame in enumerate(data):
-    for (when, old, new) in [g for g in mapper.growths if g[0] == t]:
-      state = replay.state
-      state_lib.grow_map(state, new, rule=rule)            # compile this shape once
-      _, seconds = _timed(lambda s=state, n=new: state_lib.grow_map(s, n, rule=rule).rows)
-      grow_times.append({"frame": when, "from": old, "to": new,
-                         "voxels": int(state.num_occupied), "ms": 1e3 * seconds})
-    replay.fuse(frame, camera)
-  # The same frames on a map allocated at the final capacity: the flat baseline.
-  state = jf.init_map(capacity=final_capacity, num_classes=K, voxel_size=0.05, rule=rule)
-  state = jf.fuse_frame(state, data[0], camera, rule)      # compile
-  state = jf.init_map(capacity=final_capacity, num_classes=K, voxel_size=0.05, rule=rule)
-  baseline = []
-  for frame in data:
-    state, seconds = _timed(lambda s=state, f=frame: jf.fuse_frame(s, f, camera, rule))
-    baseline.append(seconds)
-  steady = np.array([s for _, s in per_frame]) * 1e3
+  geometry = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**10)
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14, geometry=geometry,
+                     growth_factor=factor, compile_ahead=ahead)
+  seconds = []
+  for frame in frames:
+    start = time.perf_counter()
+    jax.block_until_ready(mapper.fuse(frame, camera).rows)
+    seconds.append(time.perf_counter() - start)
+  grew = sorted({t for t, _, _ in mapper.growths} | {t for t, _, _ in mapper.geometry_growths})
+  mapper.wait_for_compiles()
+  # The fixed baseline: the final capacities from the start, compiled before timing.
+  config = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=mapper.state.geometry.capacity)
+  def fresh():
+    return jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
+                       geometry=config)
+  jax.block_until_ready(jf.fuse_frame(fresh(), frames[0], camera, rule).rows)
+  state, fixed = fresh(), []
+  for frame in frames:
+    start = time.perf_counter()
+    state = jf.fuse_frame(state, frame, camera, rule)
+    jax.block_until_ready(state.rows)
+    fixed.append(time.perf_counter() - start)
+  seconds, fixed = np.array(seconds), np.array(fixed)
+  median = float(np.median(seconds[1:]))
+  later = [t for t in grew if t > 0]
   return {
-      "frames": num_frames, "height": height, "width": width, "voxel_size": 0.05,
-      "final_capacity": final_capacity, "grown_to": grown_to,
+      "growth_factor": factor, "compile_ahead": ahead,
+      "semantic_growths": [list(g) for g in mapper.growths],
+      "geometry_growths": [list(g) for g in mapper.geometry_growths],
       "voxels": int(mapper.state.num_occupied), "dropped": int(mapper.state.num_dropped),
-      "mapper_ms_median": float(np.median(steady)), "mapper_ms_max": float(steady.max()),
-      "mapper_ms_first_half": float(np.median(steady[:len(steady) // 2])),
-      "mapper_ms_second_half": float(np.median(steady[len(steady) // 2:])),
-      "growth_frame_ms": [1e3 * s for _, s in growth_frames],
-      "fixed_ms_median": float(np.median(baseline) * 1e3),
-      "grow_map": grow_times,
+      "blocks": int(mapper.state.geometry.num_blocks),
+      "final_capacity": mapper.capacity, "final_blocks": mapper.state.geometry.capacity,
+      "first_frame_s": float(seconds[0]),
+      "fuse_s": float(seconds[1:].sum()), "fixed_s": float(fixed[1:].sum()),
+      "growth_share": float((seconds[1:].sum() - fixed[1:].sum()) / seconds[1:].sum()),
+      "median_ms": 1e3 * median, "fixed_median_ms": 1e3 * float(np.median(fixed[1:])),
+      "growth_frames": [{"frame": t, "s": float(seconds[t])} for t in later],
+      "growth_excess_s": float(sum(seconds[t] - median for t in later)),
+      "worst_frame": int(1 + np.argmax(seconds[1:])),
+      "worst_frame_s": float(seconds[1:].max()),
   }
 
 
-def table(r: dict) -> str:
+def table(result: dict) -> str:
+  first = result["runs"][0]
   lines = [
-      f"{r['frames']} frames at {r['height']}×{r['width']}, K = {K}, D+R, {r['voxel_size']} m "
-      f"voxels; {r['voxels']} voxels in the end, {r['dropped']} dropped; capacity 2^14 → "
-      + " → ".join(f"2^{int(np.log2(c))}" for c in r["grown_to"]),
+      f"{result['frames']} frames at {result['height']}×{result['width']} down a "
+      f"{LENGTH:g} m corridor, K = {K}, D+R, 5 cm voxels and blocks; in the end "
+      f"{first['voxels']:,} voxels ({first['dropped']} dropped) and {first['blocks']:,} blocks.",
       "",
-      "| per frame | ms |", "|---|---|",
-      f"| `Mapper.fuse` between growths, median (first half / second half) | "
-      f"{r['mapper_ms_median']:.1f} ({r['mapper_ms_first_half']:.1f} / "
-      f"{r['mapper_ms_second_half']:.1f}) |",
-      f"| `Mapper.fuse` between growths, max | {r['mapper_ms_max']:.1f} |",
-      f"| `fuse_frame` on a map allocated at 2^{int(np.log2(r['final_capacity']))}, median | "
-      f"{r['fixed_ms_median']:.1f} |",
-      f"| a frame that grows the map (count + `grow_map` + fuse), each | "
-      + ", ".join(f"{ms:.0f}" for ms in r["growth_frame_ms"]) + " |",
-      "",
-      "| `grow_map` | voxels moved | ms |", "|---|---|---|",
+      "| Mapper | growths (semantic + geometry) | fuse s (fixed map s) | growth share | "
+      "growth frames, s each | worst other frame s | first frame s |",
+      "|---|---|---|---|---|---|---|",
   ]
-  lines += [f"| 2^{int(np.log2(g['from']))} → 2^{int(np.log2(g['to']))} | {g['voxels']} | "
-            f"{g['ms']:.1f} |" for g in r["grow_map"]]
+  for name, r in zip((c[0] for c in CONFIGS), result["runs"]):
+    lines.append(
+        f"| {name} | {len(r['semantic_growths'])} + {len(r['geometry_growths'])} | "
+        f"{r['fuse_s']:.1f} ({r['fixed_s']:.1f}) | {100 * r['growth_share']:.0f} % | "
+        + ", ".join(f"{g['s']:.2f}" for g in r["growth_frames"])
+        + f" | {r['worst_frame_s']:.2f} (frame {r['worst_frame']}) | {r['first_frame_s']:.1f} |")
   return "\n".join(lines)
 
 
 def main(argv=None) -> None:
   parser = argparse.ArgumentParser(prog="python -m bench.growth",
                                    description=__doc__.split("\n")[0])
-  parser.add_argument("--quick", action="store_true", help="fewer, smaller frames")
+  parser.add_argument("--quick", action="store_true", help="300 frames at 60×80")
   parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"))
+  parser.add_argument("--one", nargs=5, type=int, help=argparse.SUPPRESS)   # a child run
   args = parser.parse_args(argv)
-  size = (60, 80, 40) if args.quick else (120, 160, 40)
-  result = run(size[2], size[0], size[1])
+  if args.one:
+    if os.environ.get("BENCH_GROWTH_CACHE"):
+      from jaxfusion.lab import compile_cache   # the `jaxfusion` commands' cache, as they use it
+      compile_cache.enable()
+    frames, height, width, factor, ahead = args.one
+    print(json.dumps(run_one(frames, height, width, factor, bool(ahead))))
+    return
+  frames, height, width = (300, 60, 80) if args.quick else (2000, 120, 160)
+  runs = []
+  for name, factor, ahead, cached in CONFIGS:
+    # A process per configuration: each compiles its own programs, as a user's run would.
+    with tempfile.TemporaryDirectory() as cache:
+      env = dict(os.environ)
+      if cached:
+        env.update(JAXFUSION_COMPILE_CACHE=cache, BENCH_GROWTH_CACHE="1")
+      for _ in range(2 if cached else 1):      # a cached run is timed on its second go
+        child = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
+                                str(height), str(width), str(factor), str(int(ahead))],
+                               capture_output=True, text=True, check=True, env=env,
+                               cwd=pathlib.Path(__file__).parent.parent)
+    runs.append(json.loads(child.stdout.strip().splitlines()[-1]))
+    runs[-1]["persistent_cache"] = cached
+    print(f"{name}: {runs[-1]['fuse_s']:.1f} s", file=sys.stderr)
+  result = {"frames": frames, "height": height, "width": width, "runs": runs}
   out = pathlib.Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
-  (out / "growth.json").write_text(json.dumps(result, indent=1))
+  (out / ("growth_quick.json" if args.quick else "growth.json")).write_text(
+      json.dumps(result, indent=1))
   print(table(result))
-  print(f"\nwrote {out / 'growth.json'}")
 
 
 if __name__ == "__main__":

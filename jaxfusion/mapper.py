@@ -136,11 +136,18 @@ class Mapper:
     geometry: a `tsdf.TSDFConfig` to carry a geometry layer (None: semantics only); its block
       table grows by the same rule, `grow_at` of its capacity, up to 2**24 blocks.
     free_space: free-space clearing (`init_map`'s option, docs/equations.md §10).
-    growth_factor: how many times larger each growth makes a table (2, 4 or 8).
+    growth_factor: how many times larger each growth makes a table (2, 4 or 8). A growth's
+      cost is mostly compiling `fuse_frame` for the new size (2.6–3.3 s on 2 CPU cores), so
+      fewer, larger growths cost less: in `bench/growth.py` (2,000 frames down a 60 m corridor)
+      4 spends 47 % of the fuse time on growth, 2 spends 71 %, 8 31 % (with tables left as
+      little as 1/16 full). JAX's persistent compilation cache (which the `jaxfusion` commands
+      turn on) leaves a repeat run the rehash: 0.5–0.6 s per growth, 20 % at 4.
     compile_ahead: after the first frame and after each growth, compile on a background thread
       the programs the next growth of each layer will need (the rehash, the room check and
-      `fuse_frame` at the larger size), so that a growth costs the rehash, not a compile
-      (`bench/growth.py`). Off: they compile when first called, on the frame that grows.
+      `fuse_frame` at the larger size), so that a growth that comes late enough costs the
+      rehash, not a compile. Off by default: on 2 cores the background compiles (of both
+      layers' next sizes, one of them often never used) slowed the walk more than they saved
+      (59 % against 47 % at factor 4); it pays where cores are spare and growths far apart.
     keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
       `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
       A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
@@ -159,8 +166,8 @@ class Mapper:
                voxel_size: float = 0.1, capacity: int = 2**16, grow_at: float = 0.5,
                max_capacity: int = 2**30,
                max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None,
-               free_space=False, keep_frames: int = 0, growth_factor: int = 2,
-               compile_ahead: bool = True):
+               free_space=False, keep_frames: int = 0, growth_factor: int = 4,
+               compile_ahead: bool = False):
     if not 0.0 < grow_at < 1.0:
       raise ValueError(f"grow_at must lie in (0, 1); got {grow_at}")
     if not isinstance(max_capacity, (int, np.integer)) or max_capacity > 2**30:
@@ -216,7 +223,7 @@ class Mapper:
     if capacity == self.state.capacity:
       return   # at max_capacity: fuse anyway; what does not fit is dropped and counted
     old = self.state.capacity
-    self.wait_for_compiles()   # not the same compile twice, here and in the background
+    self.wait_for_compiles("semantic")   # not the same compile twice, here and behind
     self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
     self.growths.append((self.frames_fused, old, capacity))
 
@@ -236,7 +243,7 @@ class Mapper:
     while blocks + new > self.grow_at * capacity and capacity < 2**24:
       capacity = min(capacity * self.growth_factor, 2**24)
     if capacity != geometry.capacity:
-      self.wait_for_compiles()   # not the same compile twice, here and in the background
+      self.wait_for_compiles("geometry")
       self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
       self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
 
@@ -282,15 +289,22 @@ class Mapper:
       jobs.append((int(geometry.num_blocks) / geometry.capacity, _compile_geometry,
                    min(geometry.capacity * self.growth_factor, 2**24)))
     jobs.sort(key=lambda job: -job[0])
-    self._ahead = (key, [self._pool.submit(fn, shapes, frame_shapes, camera, self.rule, size)
-                         for _, fn, size in jobs])
-
-  def wait_for_compiles(self) -> None:
-    """Blocks until the background compile of the next growth's programs (`compile_ahead`)
-    has finished. A failed compile is not an error here: a growth compiles what it calls
-    itself, and says why if that fails too."""
     if self._ahead is not None:
-      concurrent.futures.wait(self._ahead[1])
+      for future in self._ahead[1].values():
+        future.cancel()                   # for sizes that are gone: drop it unless under way
+    self._ahead = (key, {fn: self._pool.submit(fn, shapes, frame_shapes, camera, self.rule, size)
+                         for _, fn, size in jobs})
+
+  def wait_for_compiles(self, layer: Optional[str] = None) -> None:
+    """Blocks until the background compile of the next growth's programs (`compile_ahead`)
+    has finished: of both layers, or of `layer` ("semantic" or "geometry"). A failed compile
+    is not an error here: a growth compiles what it calls itself, and says why if that fails
+    too."""
+    if self._ahead is None:
+      return
+    wanted = {"semantic": _compile_semantic, "geometry": _compile_geometry}.get(layer)
+    concurrent.futures.wait([f for fn, f in self._ahead[1].items()
+                             if wanted is None or fn is wanted])
 
   # --- kept frames: de-integration, re-integration, rebuild (docs/equations.md §11.3) -------
   def _new_id(self, frame_id, default):

@@ -28,7 +28,8 @@
 Each command module offers `add_parser(subparsers)` and `main(args) -> int`; shared flags are
 in `lab.flags`. Errors a user can fix (a wrong sequence spec, an unreadable folder, an unknown
 rule, a mismatched checkpoint or cache) are printed as one line and exit with status 2, without
-a traceback.
+a traceback. Compiled programs are kept between runs in the user's cache folder
+(`lab.compile_cache`; `JAXFUSION_COMPILE_CACHE=off` turns that off).
 """
 
 import argparse
@@ -59,6 +60,8 @@ def main(argv=None) -> int:
   is joined first (`jaxfusion.distributed.initialize`)."""
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser().parse_args(argv)
+  from jaxfusion.lab import compile_cache   # pylint: disable=import-outside-toplevel
+  compile_cache.enable()   # compiled programs kept between runs (JAXFUSION_COMPILE_CACHE=off)
   from jaxfusion.lab import processes   # pylint: disable=import-outside-toplevel
   num_processes = getattr(args, "processes", 1)
   if num_processes is not None and num_processes < 1:

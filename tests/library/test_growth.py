@@ -154,7 +154,7 @@ def test_compile_ahead_leaves_a_growth_no_compile_and_the_same_map(factor):
   frames = _frames(10)
   config = jf.tsdf.TSDFConfig(capacity=2**6)
   ahead = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, geometry=config,
-                    growth_factor=factor)
+                    growth_factor=factor, compile_ahead=True)
   plain = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, geometry=config,
                     growth_factor=factor, compile_ahead=False)
   seen, listen = _main_thread_compiles()
