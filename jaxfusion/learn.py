@@ -36,8 +36,13 @@ from jaxfusion import tune
 learned_lib = importlib.import_module("jaxfusion.rules.learned")
 
 TRAINED = ("theta", "bias", "context_theta", "mix", "gate", "beta")
-# Rule families `fit` can fit: the learned rule (§3.9) and GLFS (§3.10).
-FAMILIES = ("learned", "glfs")
+# Rule families `fit` can fit: the learned rule (§3.9), GLFS (§3.10) and the family (§3.11).
+FAMILIES = ("learned", "glfs", "family")
+# The family's terms `fit` can fit beside its table (docs/equations.md §3.11).
+FAMILY_TERMS = ("moments", "context", "beta", "mix")
+# Where the family's R and D terms start: nearly absent (β = δ = 10⁻³), so that the fit begins
+# at the starting table's maps.
+FAMILY_START = {"beta": 1e-3, "mix": 1e-3}
 # What early stopping may keep: the lowest validation loss or the highest validation mIoU.
 SELECTIONS = ("loss", "miou")
 # Where the parameters start (constrained values): D+R at the paper's β, with the weights and the
@@ -92,6 +97,53 @@ def start_params(num_classes: int, *, start: Optional[dict] = None,
         value = np.asarray(values[name], np.float32)
         values[name] = np.broadcast_to(value, (num_classes,) + value.shape).copy()
   return unconstrain(values)
+
+
+def family_start(num_classes: int, *, table, terms=("moments",), context=(),
+                 per_class_weights: bool = False) -> dict:
+  """Unconstrained starting parameters of the family (docs/equations.md §3.11): `table =
+  exp(u)` at the given table (e.g. the shipped GLFS table, so that the fit begins where GLFS
+  ends), the moment and context weights at 0 (`(K, ·)` with `per_class_weights`), β (per class)
+  and δ at `FAMILY_START`.
+
+  Raises:
+    ValueError: an unknown term, a context term without names (or names without it), or a
+      table that is not `(K, depth bins, angle bins)` of finite non-negative weights.
+  """
+  unknown = set(terms) - set(FAMILY_TERMS)
+  if unknown:
+    raise ValueError(f"unknown family terms {sorted(unknown)}; the terms fitted beside the "
+                     f"table are {', '.join(FAMILY_TERMS)}")
+  if ("context" in terms) != bool(context):
+    raise ValueError("the family's context term needs context features, and context features "
+                     "need the context term")
+  table = np.asarray(table, np.float32)
+  want = (num_classes, len(rules_lib.glfs_lib.DEPTH_EDGES) + 1,
+          len(rules_lib.glfs_lib.ANGLE_EDGES) + 1)
+  if table.shape != want or not np.all(np.isfinite(table)) or np.any(table < 0):
+    raise ValueError(f"the family's starting table must be {want} finite non-negative weights; "
+                     f"got shape {table.shape}")
+  shape = lambda width: (num_classes, width) if per_class_weights else (width,)
+  params = {"table": jnp.log(jnp.maximum(jnp.asarray(table), 1e-6))}
+  if "moments" in terms:
+    params["moment_weights"] = jnp.zeros(shape(learned_lib.NUM_FEATURES), jnp.float32)
+  if "context" in terms:
+    params["context_weights"] = jnp.zeros(shape(len(context)), jnp.float32)
+  if "beta" in terms:
+    params["beta"] = unconstrain({"beta": np.full(num_classes, FAMILY_START["beta"],
+                                                  np.float32)})["beta"]
+  if "mix" in terms:
+    params["mix"] = unconstrain({"mix": FAMILY_START["mix"]})["mix"]
+  return params
+
+
+def constrain_family(params: dict) -> dict:
+  """Unconstrained family parameters → the rule's: `table = exp(u)`, β and δ through a
+  sigmoid, the weights as they are."""
+  out = constrain(params)
+  if "table" in out:
+    out["table"] = jnp.exp(out["table"])
+  return out
 
 
 def glfs_start(num_classes: int) -> dict:
@@ -160,7 +212,7 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
         voxel_size: float = 0.1, objective: str = "cross_entropy", select: str = "loss",
         progress: Optional[Callable[[int, float, Optional[float]], None]] = None,
         family: str = "learned", context=(), per_class_weights: bool = False,
-        gate_size: int = 3) -> FitResult:
+        gate_size: int = 3, terms=("moments",), start_table=None) -> FitResult:
   """Fits the learned rule (or GLFS) on `train` with Adam, stopping early on `validation`.
 
   Args:
@@ -183,13 +235,18 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
       front ends where the loss and mIoU part ways. The patience counts evaluations without a
       better value of the selected measure; both are recorded.
     progress: called as `progress(step, train_loss, validation_loss or None)` after each step.
-    family: "learned" (§3.9) or "glfs" (§3.10: only its table is fitted, `table = exp(u)`;
+    family: "learned" (§3.9), "glfs" (§3.10: only its table is fitted, `table = exp(u)`;
       `start`, `per_class_beta`, `context`, `per_class_weights` and `gate_size` are the learned
-      rule's and are ignored).
-    context: context features the learned rule's weight reads (`jaxfusion.context.FEATURES`);
-      the batches need `frames.rgb` for the image ones.
-    per_class_weights: the learned weight's θ, b and context weights per predicted class.
+      rule's and are ignored) or "family" (§3.11: its table and `terms`, from
+      `family_start(start_table, ...)`).
+    context: context features the learned rule's weight (or the family's context term) reads
+      (`jaxfusion.context.FEATURES`); the batches need `frames.rgb` for the image ones.
+    per_class_weights: the learned weight's θ, b and context weights per predicted class (the
+      family's moment and context weights).
     gate_size: 3 (agreement and spread) or 5 (also the divergence and the frame count).
+    terms: the family's terms fitted beside its table (`FAMILY_TERMS`).
+    start_table: the family's starting table `(K, depth bins, angle bins)` (e.g. the shipped
+      GLFS table); None: all ones (Bayes).
 
   Returns:
     FitResult.
@@ -211,7 +268,20 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     raise ValueError("the training and validation batches must have the same classes (K)")
   fixed = {"eps": jnp.float32(eps), "alpha0": jnp.float32(alpha0)}
   context = tuple(context)
-  if family == "glfs":
+  if family == "family":
+    terms = tuple(terms)
+    fixed = {"depth_edges": jnp.asarray(rules_lib.glfs_lib.DEPTH_EDGES, jnp.float32),
+             "angle_edges": jnp.asarray(rules_lib.glfs_lib.ANGLE_EDGES, jnp.float32)}
+    if "moments" in terms or "mix" in terms:
+      fixed["eps"] = jnp.float32(eps)
+    if "mix" in terms:
+      fixed["alpha0"] = jnp.float32(alpha0)
+    family_context = context if "context" in terms else ()
+    make = lambda p: rules_lib.family({**fixed, **constrain_family(p)}, context=family_context,
+                                      aggregate=aggregate)
+    values_of = lambda p: {**{k: _plain(v) for k, v in fixed.items()},
+                           **{k: _plain(v) for k, v in constrain_family(p).items()}}
+  elif family == "glfs":
     fixed = {}
     make = lambda p: rules_lib.glfs(jnp.exp(p["table"]), aggregate=aggregate)
     values_of = lambda p: {"table": _plain(jnp.exp(p["table"])),
@@ -246,10 +316,18 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
     return loss, value
 
   started = time.perf_counter()
-  params = (glfs_start(num_classes) if family == "glfs" else
-            start_params(num_classes, start=start, per_class_beta=per_class_beta,
-                         context=context, per_class_weights=per_class_weights,
-                         gate_size=gate_size))
+  if family == "family":
+    table = (np.ones((num_classes, len(rules_lib.glfs_lib.DEPTH_EDGES) + 1,
+                      len(rules_lib.glfs_lib.ANGLE_EDGES) + 1), np.float32)
+             if start_table is None else start_table)
+    params = family_start(num_classes, table=table, terms=terms, context=family_context,
+                          per_class_weights=per_class_weights)
+  elif family == "glfs":
+    params = glfs_start(num_classes)
+  else:
+    params = start_params(num_classes, start=start, per_class_beta=per_class_beta,
+                          context=context, per_class_weights=per_class_weights,
+                          gate_size=gate_size)
   opt_state = optimizer.init(params)
   history, miou_history, losses, waited, step = [], [], [], 0, 0
   best = (evaluate(params, 0)[1], 0, params)
@@ -269,6 +347,8 @@ def fit(train: dict, validation: dict, *, steps: int = 200, learning_rate: float
   values = values_of(best[2])
   if family == "learned" and context:
     values["context"] = list(context)
+  if family == "family" and family_context:
+    values["context"] = list(family_context)
   return FitResult(params=values, rule=rule_of(family, values, aggregate=aggregate),
                    train_losses=losses, validation=history, best_step=best[1], steps_run=step,
                    stopped_early=step < steps, seconds=time.perf_counter() - started,
@@ -338,10 +418,12 @@ def map_calibration(rule: rules_lib.FusionRule, data: dict, *, voxel_size: float
 
 
 def rule_of(family: str, params: dict, *, aggregate: str = "sum") -> rules_lib.FusionRule:
-  """The FusionRule of a fitted family's parameters ("learned" or "glfs", as `params.json`
-  stores them)."""
+  """The FusionRule of a fitted family's parameters ("learned", "glfs" or "family", as
+  `params.json` stores them)."""
   if family == "glfs":
     return rules_lib.glfs(**params, aggregate=aggregate)
+  if family == "family":
+    return rules_lib.family(params, aggregate=aggregate)
   if family == "learned":
     return rules_lib.learned(params, aggregate=aggregate)
   raise ValueError(f"unknown rule family {family!r}; the fitted families are {FAMILIES}")

@@ -110,6 +110,9 @@ class ReferenceMap:
     if rule == "learned":
       self._update_learned(voxel, pixels, contexts)
       return
+    if rule == "family":
+      self._update_family(voxel, pixels, contexts)
+      return
     if rule == "glfs":   # §3.10
       table, depth_edges, angle_edges = self.glfs
       total = []
@@ -178,6 +181,74 @@ class ReferenceMap:
     logp = keep * voxel["logp"] + g * obs
     voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
     voxel["alpha_bar"] = new
+
+  def _update_family(self, voxel, pixels, contexts):
+    """docs/equations.md §3.11, one voxel and one frame: `self.learned` holds the family's
+    parameters (the terms present are the keys given), `self.context` the rule's context names
+    (the weights read the first F of them, F the width of their context weights)."""
+    K, hp = self.K, self.learned
+    row = lambda x, pred, per_class_ndim: x[pred] if x.ndim == per_class_ndim else x
+    eps = float(hp.get("eps", 1e-12))
+    width = next((hp[n].shape[-1] for n in ("context_weights", "context_theta") if n in hp), 0)
+    names = self.context[:width]
+    scale = np.array([CONTEXT_SCALE[n] for n in names])
+    plain, weighted, alphas = [], [], []
+    for (p, s), c in zip(pixels, contexts):
+      pred = int(np.argmax(p))
+      phi = learned_features(p, s, eps)
+      psi = None if not names else scale * np.asarray(c[:width])
+      w = 1.0
+      if "table" in hp:
+        z_ = c[self.context.index("depth")]
+        cos = c[self.context.index("incidence")]
+        w *= hp["table"][pred, int(np.sum(hp["depth_edges"] <= z_)),
+                         int(np.sum(hp["angle_edges"] <= cos))]
+      if "moment_weights" in hp or "context_weights" in hp:
+        z = 0.0
+        if "moment_weights" in hp:
+          z += float(row(hp["moment_weights"], pred, 2) @ phi)
+        if "context_weights" in hp:
+          z += float(row(hp["context_weights"], pred, 2) @ psi)
+        w *= math.exp(min(max(z, -15.0), 15.0))
+      if "theta" in hp:
+        z = float(row(hp["theta"], pred, 2) @ phi) + float(row(hp["bias"], pred, 1))
+        if "context_theta" in hp:
+          z += float(row(hp["context_theta"], pred, 2) @ psi)
+        w *= sigmoid(z)
+      if "beta" in hp:
+        p = per_class_regularize(p, np.broadcast_to(hp["beta"], (K,)))
+      log_pt = np.log(np.maximum(p, TINY))
+      alpha = -np.log(np.clip(s, 0.0, 0.25) + eps)
+      plain.append(w * log_pt)
+      weighted.append(w * alpha * log_pt)
+      alphas.append(alpha)
+    if "mix" in hp:
+      mix = float(hp["mix"])
+      prev = voxel["alpha_bar"]
+      new = np.maximum(prev, np.max(alphas, axis=0))
+      keep = (1 - mix) + mix * prev / new
+      obs = (1 - mix) * self._reduce(plain) + mix * self._reduce(weighted) / new
+      voxel["alpha_bar"] = new
+    else:
+      keep, obs = 1.0, self._reduce(plain)
+    g = 1.0
+    if "gate" in hp:
+      gate = hp["gate"]
+      prior = np.exp(voxel["logp"] - voxel["logp"].max())
+      prior /= prior.sum()
+      soft = np.exp(obs - obs.max())
+      soft /= soft.sum()
+      spread = -sum(q * math.log(max(q, TINY)) for q in prior) / math.log(K)
+      logit = gate[0] + gate[1] * float(prior @ soft) + gate[2] * spread
+      if len(gate) == 5:
+        mid = 0.5 * (soft + prior)
+        kl = lambda a: sum(x * (math.log(max(x, TINY)) - math.log(max(m, TINY)))
+                           for x, m in zip(a, mid) if x > 0)
+        js = min(max(0.5 * (kl(soft) + kl(prior)) / math.log(2), 0.0), 1.0)
+        logit += gate[3] * js + gate[4] * math.log1p(voxel["frames"]) / math.log(33.0)
+      g = sigmoid(logit)
+    logp = keep * voxel["logp"] + g * obs
+    voxel["logp"] = logp - np.log(np.sum(np.exp(logp - logp.max()))) - logp.max()
 
   def read(self):
     """Same layout as jaxfusion.read_map, sorted by coordinates."""

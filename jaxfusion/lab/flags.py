@@ -180,7 +180,9 @@ def glfs_rule(args: argparse.Namespace) -> tuple:
 
 
 def learned_variants(args: argparse.Namespace) -> tuple:
-  """`((tag, params), …)` of repeated `--variant TAG=PARAMS_JSON` flags (learned rules)."""
+  """`((tag, params), …)` of repeated `--variant TAG=PARAMS_JSON` flags: learned rules as
+  `(tag, params)`, members of the rule family (docs/equations.md §3.11) as
+  `(tag, params, "family")`."""
   from jaxfusion import learn   # pylint: disable=import-outside-toplevel
   out = []
   for spec in getattr(args, "variant", []) or []:
@@ -188,13 +190,19 @@ def learned_variants(args: argparse.Namespace) -> tuple:
     if not sep or not tag or not path:
       raise ValueError(f"--variant takes TAG=PARAMS_JSON; got {spec!r}")
     family, params = learn.load_rule(path)
-    if family != "learned":
-      raise ValueError(f"--variant {spec}: a {family!r} parameter file, not a learned rule")
-    out.append((tag, params))
-  tags = [t for t, _ in out]
+    if family not in ("learned", "family"):
+      raise ValueError(f"--variant {spec}: a {family!r} parameter file, not a learned rule or "
+                       f"a member of the rule family (give GLFS with --glfs)")
+    out.append((tag, params) if family == "learned" else (tag, params, family))
+  tags = [v[0] for v in out]
   if len(set(tags)) != len(tags):
     raise ValueError(f"--variant tags must differ; got {tags}")
   return tuple(out)
+
+
+def variant_family(variant: tuple) -> str:
+  """The rule family of a `learned_variants` entry: "learned" or "family"."""
+  return variant[2] if len(variant) > 2 else "learned"
 
 
 def add_study_run(parser: argparse.ArgumentParser, *, seed_aliases: Sequence[str] = (),
@@ -408,9 +416,10 @@ def fitted_num_classes(family: str, params: dict) -> Optional[int]:
   """K a fitted rule's parameters are for (None when no parameter depends on K): GLFS's table
   rows; the learned rule's per-class β, θ, b or context weights."""
   import numpy as np  # pylint: disable=import-outside-toplevel
-  if family == "glfs":
+  if family in ("glfs", "family") and "table" in params:
     return int(np.shape(params["table"])[0])
-  for key, per_class_ndim in (("beta", 1), ("bias", 1), ("theta", 2), ("context_theta", 2)):
+  for key, per_class_ndim in (("beta", 1), ("bias", 1), ("theta", 2), ("context_theta", 2),
+                              ("moment_weights", 2), ("context_weights", 2)):
     value = params.get(key)
     if value is not None and np.ndim(value) == per_class_ndim:
       return int(np.shape(value)[0])

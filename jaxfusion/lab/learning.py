@@ -83,8 +83,17 @@ def add_parser(subparsers) -> None:
                            "the most frequent class) or the pooled soft IoU (class-balanced, "
                            "as mIoU)")
   parser.add_argument("--family", choices=learn.FAMILIES, default="learned",
-                      help="the rule family to fit: the learned rule (docs/equations.md §3.9) or "
-                           "GLFS (§3.10, a weight per class × depth bin × incidence bin)")
+                      help="the rule family to fit: the learned rule (docs/equations.md §3.9), "
+                           "GLFS (§3.10, a weight per class × depth bin × incidence bin) or the "
+                           "family (§3.11: GLFS's table times an unbounded weight of --terms, "
+                           "from --start-table)")
+  parser.add_argument("--terms", nargs="*", choices=learn.FAMILY_TERMS, default=["moments"],
+                      help="--family family: the terms fitted beside the table (moments: a "
+                           "log-weight over the MC moment features; context: over --context; "
+                           "beta: R's regularisation; mix: D's concentration)")
+  parser.add_argument("--start-table", default=None, metavar="PARAMS_JSON",
+                      help="--family family: the GLFS (or family) params.json whose table the "
+                           "fit starts from (default: the shipped GLFS table)")
   parser.add_argument("--context", nargs="*", default=[], metavar="FEATURE",
                       help="per-pixel context features the learned weight reads (docs/equations.md "
                            "§2.5): " + ", ".join(context_lib.FEATURES) + "; or 'geometry', "
@@ -167,6 +176,18 @@ def _data_batches(args, given: dict) -> tuple:
           tuning.load_data_batch(validation, options, front_end=front_end))
 
 
+def start_table(args) -> np.ndarray:
+  """The table `--family family` starts from: `--start-table`'s, or the shipped GLFS table."""
+  if args.start_table is None:
+    import jaxfusion_models  # pylint: disable=import-outside-toplevel
+    args.start_table = str(jaxfusion_models.GLFS_PATH)
+  family, params = learn.load_rule(args.start_table)
+  if family not in ("glfs", "family") or "table" not in params:
+    raise ValueError(f"--start-table {args.start_table}: a {family!r} parameter file without a "
+                     f"table (give a GLFS or family params.json)")
+  return np.asarray(params["table"], np.float32)
+
+
 def command(args) -> int:
   """Runs `jaxfusion learn-rule`; returns the exit status."""
   if args.quick:
@@ -174,6 +195,7 @@ def command(args) -> int:
     args.frames, args.height, args.width, args.steps = 8, 30, 40, 6
     args.eval_every, args.patience = 2, 2
   started = time.perf_counter()
+  table = start_table(args) if args.family == "family" else None   # refused before the data
   given = flags.data_sets(args, "calibration_data", "validation_data", "data")
   if any(v is not None for v in given.values()):
     train, validation = _data_batches(args, given)
@@ -204,7 +226,9 @@ def command(args) -> int:
                      voxel_size=args.voxel_size, select=args.select, progress=progress,
                      objective=args.objective,
                      family=args.family, context=context_names(args.context),
-                     per_class_weights=args.per_class_weights, gate_size=args.gate_size)
+                     per_class_weights=args.per_class_weights, gate_size=args.gate_size,
+                     terms=tuple(args.terms),
+                     start_table=table)
   bar.close()
   os.makedirs(args.out, exist_ok=True)
   reports.write_json(os.path.join(args.out, "params.json"),

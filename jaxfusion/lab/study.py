@@ -70,6 +70,7 @@ from jaxfusion.lab import frontend
 from jaxfusion.lab import reports
 from jaxfusion.lab import figures
 from jaxfusion import io
+from jaxfusion import learn
 from jaxfusion import metrics
 from jaxfusion.lab import stats
 from jaxfusion.datasets.classes import CLASS_NAMES
@@ -130,6 +131,7 @@ class StudyConfig:
       frame's depth and incidence as a row; None: no GLFS row.
     glfs_source: where `glfs` came from.
     variants: `((tag, params), …)`: more learned rules (e.g. an ablation by feature group),
+      and `(tag, params, "family")` members of the rule family (docs/equations.md §3.11),
       each a row "learned:<tag>" compared with Bayes and with the learned row.
     data: the specs of a researcher's sequences (`--data`, strings); empty: the embedded grid
       of `run`. With data, the sequences form one group ("data") instead of one per shift.
@@ -156,8 +158,10 @@ class StudyConfig:
       out[LEARNED] = jf.rules.learned(self.learned, aggregate=aggregate)
     if self.glfs is not None:
       out[GLFS] = jf.rules.glfs(**self.glfs, aggregate=aggregate)
-    for tag, params in self.variants:
-      out[VARIANT_PREFIX + tag] = jf.rules.learned(params, aggregate=aggregate)
+    for variant in self.variants:
+      tag, params = variant[:2]
+      out[VARIANT_PREFIX + tag] = learn.rule_of(flags.variant_family(variant), params,
+                                                aggregate=aggregate)
     return out
 
   @property
@@ -165,15 +169,20 @@ class StudyConfig:
     """The rules' names in table order, then the fitted rows (when given) and `ORACLE`."""
     fitted = [LEARNED] if self.learned is not None else []
     fitted += [GLFS] if self.glfs is not None else []
-    fitted += [VARIANT_PREFIX + tag for tag, _ in self.variants]
+    fitted += [VARIANT_PREFIX + v[0] for v in self.variants]
     return list(self.run.rules) + fitted + [ORACLE]
 
   @property
   def comparisons(self) -> list:
-    """`COMPARISONS`, then each variant against Bayes and the learned row against it."""
+    """`COMPARISONS`, then each variant against Bayes and the learned row against it (a member
+    of the rule family against GLFS instead, whose table it starts from)."""
     extra = []
-    for tag, _ in self.variants:
-      extra += [(VARIANT_PREFIX + tag, "bayes"), (LEARNED, VARIANT_PREFIX + tag)]
+    for variant in self.variants:
+      name = VARIANT_PREFIX + variant[0]
+      if flags.variant_family(variant) == "family":
+        extra += [(name, "bayes")] + ([(name, GLFS)] if self.glfs is not None else [])
+      else:
+        extra += [(name, "bayes"), (LEARNED, name)]
     return list(COMPARISONS[:-1]) + extra + [COMPARISONS[-1]]
 
   @classmethod
@@ -657,7 +666,7 @@ def write_outputs(out_dir: str, summary: dict, per_sequence: list, config: Study
              if config.learned is not None else "")
           + (f"GLFS `{config.glfs_source or 'given parameters'}`; "
              if config.glfs is not None else "")
-          + "".join(f"variant {tag}; " for tag, _ in config.variants)).rstrip("; ") + "."
+          + "".join(f"variant {v[0]}; " for v in config.variants)).rstrip("; ") + "."
   if config.data:
     note += "".join(f" {r['sequence']}: {r['frames']} frames" + (
         f" ({r['skipped']} without a prediction, skipped)" if r.get("skipped") else "") + ";"
@@ -808,13 +817,13 @@ def fitted_for(config: StudyConfig, num_classes: int) -> StudyConfig:
               f"the data has {num_classes} (fit them with `jaxfusion learn-rule --data ...` "
               f"and pass --{'learned-rule' if key == LEARNED else 'glfs'} PARAMS_JSON)")
         changes[key] = None
-  for tag, params in config.variants:
-    k = flags.fitted_for_other("learned", params, num_classes)
+  for variant in config.variants:
+    k = flags.fitted_for_other(flags.variant_family(variant), variant[1], num_classes)
     if k is not None:
-      print(f"note: variant {tag} is left out: fitted for {k} classes, the data has "
+      print(f"note: variant {variant[0]} is left out: fitted for {k} classes, the data has "
             f"{num_classes}")
     else:
-      variants.append((tag, params))
+      variants.append(variant)
   return dataclasses.replace(config, variants=tuple(variants), **changes)
 
 

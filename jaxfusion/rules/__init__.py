@@ -6,6 +6,7 @@
     rules.learned(params)               # weighted, regularised Bayes with learned weights
     rules.learned(params, context=("depth", "incidence", ...))   # … reading per-pixel context
     rules.glfs(table)                   # GLFS: a weight per class × depth bin × incidence bin
+    rules.family(params)                # one unbounded log-weight of terms: all of the above
 """
 
 from jaxfusion.rules.base import AGGREGATIONS
@@ -16,7 +17,9 @@ from jaxfusion.rules.base import stack
 from jaxfusion.rules.baselines import bayes
 from jaxfusion.rules.baselines import sum_labels
 from jaxfusion.rules.baselines import sum_probs
+from jaxfusion.rules import family as family_lib
 from jaxfusion.rules import glfs as glfs_lib
+from jaxfusion.rules.family import family
 from jaxfusion.rules.glfs import glfs
 from jaxfusion.rules.learned import learned
 from jaxfusion.rules.learned import special_case as learned_special_case
@@ -54,13 +57,14 @@ def by_name(name: str, **hparams) -> FusionRule:
 
 def display_name(rule: FusionRule) -> str:
   """The paper's name of a rule ("Sum probs", "Bayesian", "D+R", …)."""
-  names = {"learned": "Learned", "glfs": "GLFS"}
+  names = {"learned": "Learned", "glfs": "GLFS", "family": "Family"}
   return PAPER_RULES.get(rule.name, (names.get(rule.name, rule.name), None))[0]
 
 
 __all__ = sorted([
     "AGGREGATIONS", "DEFAULT_ALPHA0", "FusionRule", "PAPER_RULES", "PixelTerms",
-    "VoxelObservation", "bayes", "by_name", "display_name", "glfs", "glfs_lib", "learned",
+    "VoxelObservation", "bayes", "by_name", "display_name", "family", "family_lib", "glfs",
+    "glfs_lib", "learned",
     "learned_special_case",
     "robust", "stack",
     "sum_labels",

@@ -56,6 +56,33 @@ def test_learn_rule_command_writes_params_record_and_figures(batches, tmp_path, 
     assert (out / name).stat().st_size > 1000
 
 
+@pytest.mark.slow
+def test_learn_rule_fits_the_family_from_a_glfs_table(batches, tmp_path, monkeypatch):
+  monkeypatch.setattr(tuning, "load_sequence_batch", lambda units, **kw: batches[units[0][2]])
+  table = np.random.default_rng(0).uniform(0.3, 3.0, (4, 5, 4))
+  start = tmp_path / "glfs.json"
+  start.write_text(json.dumps({"rule": "glfs", "params": {"table": table.tolist()}}))
+  parser = argparse.ArgumentParser()
+  learning.add_parser(parser.add_subparsers())
+  out = tmp_path / "family"
+  args = parser.parse_args(["learn-rule", "--family", "family", "--terms", "moments", "mix",
+                            "--start-table", str(start), "--envs", "office", "--trajectories",
+                            "0", "--train-seeds", "11", "--validation-seeds", "13", "--shifts",
+                            "1.0", "--steps", "2", "--eval-every", "1", "--front-end",
+                            "simulated", "--voxel-size", "0.25", "--out", str(out)])
+  assert args.func(args) == 0
+  family, params = learn.load_rule(str(out / "params.json"))
+  assert family == "family" and set(jf.rules.family_lib.terms(params)) == {
+      "table", "moments", "mix"}
+  record = json.loads((out / "record.json").read_text())
+  assert "--start-table" in record["command"] and "--terms moments mix" in record["command"]
+  # A start that has no table is refused in one line.
+  bad = tmp_path / "learned.json"
+  bad.write_text(json.dumps({"rule": "learned", "params": {}}))
+  assert cli.main(["learn-rule", "--family", "family", "--start-table", str(bad), "--out",
+                   str(tmp_path / "x")]) == 2
+
+
 def test_learn_rule_refuses_overlapping_or_judged_seeds(tmp_path, capsys):
   for argv, match in ((["--train-seeds", "11", "--validation-seeds", "11"], "disjoint"),
                       (["--train-seeds", "2", "12"], "judged on")):

@@ -106,10 +106,14 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   # (here D+R again, reading context at zero weight); both stay under the oracle.
   glfs = {"table": np.ones((K, 5, 4)).tolist()}
   variant = {**learned, "context": ["depth", "luminance"], "context_theta": [0.0, 0.0]}
+  # A member of the rule family with the same table is one more row, compared with GLFS.
+  member = ("fam", {"table": glfs["table"], "moment_weights": [0.0] * 6}, "family")
   more = study.StudyConfig.of(height=H, width=W, capacity=CAPACITY, voxel_size=0.5,
-                              learned=learned, glfs=glfs, variants=(("ctx", variant),))
+                              learned=learned, glfs=glfs, variants=(("ctx", variant), member))
   assert more.methods == list(config.run.rules) + [study.LEARNED, study.GLFS, "learned:ctx",
-                                                   study.ORACLE]
+                                                   "learned:fam", study.ORACLE]
+  assert ("learned:fam", study.GLFS) in more.comparisons and (
+      study.LEARNED, "learned:fam") not in more.comparisons
   assert ("learned:ctx", "bayes") in more.comparisons and (study.LEARNED, study.GLFS) in \
       more.comparisons and more.comparisons[-1] == (study.ORACLE, "bayes")
   res = study.analyze_sequence(seq, preds, gt, more)
@@ -121,6 +125,7 @@ def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   np.testing.assert_array_equal(
       res["confusion"][study.GLFS],
       jf.metrics.evaluate_map(bayes_mean, gt, K)["confusion"])
+  np.testing.assert_array_equal(res["confusion"]["learned:fam"], res["confusion"][study.GLFS])
   assert np.abs(res["confusion"]["learned:ctx"] - res["confusion"][study.LEARNED]).sum() <= 2
   for name in (study.GLFS, "learned:ctx"):
     assert np.all(res["correct"][name] <= oracle)

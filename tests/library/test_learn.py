@@ -157,6 +157,88 @@ def test_fit_other_families_and_round_trip_their_files(batches, family, tmp_path
     learn.fit(train, validation, family="mlp")
 
 
+def _table(k=4, seed=0):
+  return np.random.default_rng(seed).uniform(0.2, 4.0, (k, 5, 4)).astype(np.float32)
+
+
+def test_family_start_begins_at_its_table_and_refuses_bad_starts():
+  table = _table()
+  start = learn.constrain_family(learn.family_start(4, table=table,
+                                                    terms=("moments", "context", "beta", "mix"),
+                                                    context=("depth",), per_class_weights=True))
+  np.testing.assert_allclose(np.asarray(start["table"]), table, rtol=1e-6)
+  assert np.shape(start["moment_weights"]) == (4, 6) and np.shape(start["context_weights"]) == (4, 1)
+  np.testing.assert_array_equal(np.asarray(start["moment_weights"]), 0.0)
+  np.testing.assert_allclose(np.asarray(start["beta"]), 1e-3, rtol=1e-3)
+  assert float(start["mix"]) == pytest.approx(1e-3, rel=1e-3)
+  with pytest.raises(ValueError, match="unknown family terms"):
+    learn.family_start(4, table=table, terms=("gate",))
+  with pytest.raises(ValueError, match="context term needs context features"):
+    learn.family_start(4, table=table, terms=("context",))
+  with pytest.raises(ValueError, match=r"starting table must be \(4, 5, 4\)"):
+    learn.family_start(4, table=_table(k=5))
+  with pytest.raises(ValueError, match="starting table"):
+    learn.family_start(4, table=np.full((4, 5, 4), np.nan))
+
+
+def _family_loss(batch, terms=("moments",), context=()):
+  """The fit's training loss of the family as a function of its unconstrained parameters."""
+  make = lambda p: jf.rules.family({**learn.constrain_family(p), "eps": 1e-12}, context=context)
+  return learn._loss_fn(batch, make=make, voxel_size=0.25, objective="soft_iou")  # pylint: disable=protected-access
+
+
+@pytest.mark.slow
+def test_family_fit_step_gradient_matches_finite_differences(batches):
+  train, _ = batches
+  loss = jax.jit(_family_loss(train))
+  rng = np.random.default_rng(3)
+  params = {"table": jnp.log(jnp.asarray(_table())),
+            "moment_weights": jnp.asarray(rng.normal(0, 0.3, 6), jnp.float32)}
+  grads = jax.grad(loss)(params)
+  assert np.all(np.isfinite(np.asarray(grads["moment_weights"])))
+  assert np.any(np.asarray(grads["moment_weights"]) != 0)
+  step = 1e-2
+  for i in (0, 2, 5):                       # max probability, entropy, relative variance
+    e = np.zeros(6, np.float32)
+    e[i] = step
+    up = {**params, "moment_weights": params["moment_weights"] + e}
+    down = {**params, "moment_weights": params["moment_weights"] - e}
+    fd = (float(loss(up)) - float(loss(down))) / (2 * step)
+    assert float(grads["moment_weights"][i]) == pytest.approx(fd, rel=0.05, abs=2e-4)
+  # And one table entry that the frames use (predicted class 0, the nearest bins).
+  flat = np.asarray(grads["table"]).ravel()
+  j = int(np.argmax(np.abs(flat)))
+  e = np.zeros(flat.size, np.float32)
+  e[j] = step
+  e = e.reshape(params["table"].shape)
+  fd = (float(loss({**params, "table": params["table"] + e}))
+        - float(loss({**params, "table": params["table"] - e}))) / (2 * step)
+  assert flat[j] == pytest.approx(fd, rel=0.05, abs=2e-4)
+
+
+@pytest.mark.slow
+def test_family_fit_starts_at_its_table_and_round_trips(batches, tmp_path):
+  train, validation = batches
+  table = _table()
+  res = learn.fit(train, validation, steps=2, learning_rate=0.1, eval_every=1, patience=5,
+                  voxel_size=0.25, family="family", terms=("moments", "beta"),
+                  per_class_weights=True, start_table=table, select="miou", objective="soft_iou")
+  # Step 0 is the starting table's GLFS maps (β ≈ 10⁻³ the only difference).
+  glfs = jf.rules.glfs(table)
+  start_miou = dict(res.validation_miou)[0]
+  assert start_miou == pytest.approx(learn._miou_fn(validation, make=lambda p: glfs,  # pylint: disable=protected-access
+                                                    voxel_size=0.25)(None), abs=0.02)
+  assert res.rule.name == "family" and res.steps_run == 2
+  assert set(jf.rules.family_lib.terms(res.rule)) == {"table", "moments", "beta"}
+  assert np.shape(res.params["moment_weights"]) == (4, 6)
+  path = tmp_path / "params.json"
+  path.write_text(json.dumps({"rule": "family", "params": res.params}))
+  family, params = learn.load_rule(str(path))
+  rule = learn.rule_of(family, params)
+  for a, b in zip(jax.tree.leaves(rule.hparams), jax.tree.leaves(res.rule.hparams)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)
+
+
 def test_map_calibration_counts_every_held_gt_voxel_once(batches):
   train, _ = batches
   out = learn.map_calibration(jf.rules.bayes(), train, voxel_size=0.25)
