@@ -180,7 +180,8 @@ def rule_metadata(rule: rules_lib.FusionRule) -> dict:
 
 
 def rule_from_metadata(meta: dict) -> rules_lib.FusionRule:
-  """The rule `rule_metadata` describes: a paper rule, the learned rule or GLFS."""
+  """The rule `rule_metadata` describes: a paper rule, the learned rule, GLFS or a member of
+  the rule family."""
   hparams = {k: (np.asarray(v, np.float32) if isinstance(v, list) else v)
              for k, v in meta["hparams"].items()}
   if meta["name"] == "learned":
@@ -188,6 +189,11 @@ def rule_from_metadata(meta: dict) -> rules_lib.FusionRule:
                              aggregate=meta["aggregate"])
   if meta["name"] == "glfs":
     return rules_lib.glfs(**hparams, aggregate=meta["aggregate"])
+  if meta["name"] == "family":     # its weights read the first F context names (§3.11)
+    width = next((np.shape(hparams[n])[-1] for n in ("context_weights", "context_theta")
+                  if n in hparams), 0)
+    return rules_lib.family(hparams, context=tuple(meta.get("context", ()))[:width],
+                            aggregate=meta["aggregate"])
   return rules_lib.by_name(meta["name"], aggregate=meta["aggregate"], **hparams)
 
 

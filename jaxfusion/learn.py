@@ -39,7 +39,7 @@ TRAINED = ("theta", "bias", "context_theta", "mix", "gate", "beta")
 # Rule families `fit` can fit: the learned rule (§3.9), GLFS (§3.10) and the family (§3.11).
 FAMILIES = ("learned", "glfs", "family")
 # The family's terms `fit` can fit beside its table (docs/equations.md §3.11).
-FAMILY_TERMS = ("moments", "context", "beta", "mix")
+FAMILY_TERMS = ("moments", "context", "beta", "mix", "spatial")
 # Where the family's R and D terms start: nearly absent (β = δ = 10⁻³), so that the fit begins
 # at the starting table's maps.
 FAMILY_START = {"beta": 1e-3, "mix": 1e-3}
@@ -104,7 +104,7 @@ def family_start(num_classes: int, *, table, terms=("moments",), context=(),
   """Unconstrained starting parameters of the family (docs/equations.md §3.11): `table =
   exp(u)` at the given table (e.g. the shipped GLFS table, so that the fit begins where GLFS
   ends), the moment and context weights at 0 (`(K, ·)` with `per_class_weights`), β (per class)
-  and δ at `FAMILY_START`.
+  and δ at `FAMILY_START`, the spatial kernel (docs/equations.md §4.1) at 0.
 
   Raises:
     ValueError: an unknown term, a context term without names (or names without it), or a
@@ -134,6 +134,8 @@ def family_start(num_classes: int, *, table, terms=("moments",), context=(),
                                                   np.float32)})["beta"]
   if "mix" in terms:
     params["mix"] = unconstrain({"mix": FAMILY_START["mix"]})["mix"]
+  if "spatial" in terms:
+    params["spatial"] = jnp.zeros((num_classes, 3), jnp.float32)
   return params
 
 

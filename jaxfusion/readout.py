@@ -41,7 +41,58 @@ def voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
 @jax.jit
 def _voxel_posteriors(state: MapState) -> tuple[jax.Array, jax.Array]:
   posterior = jax.vmap(state.posterior_fn)(state.rows)
-  return posterior, observed_slots(state)
+  occupied = observed_slots(state)
+  if state.spatial is not None:
+    smoothed = smooth(state, state.keys, posterior)
+    posterior = jnp.where(occupied[:, None], smoothed, posterior)
+  return posterior, occupied
+
+
+# The 26 neighbour offsets of a voxel (x-major, then y, then z) and their shells (docs/
+# equations.md §4.1): 0 = a shared face, 1 = an edge, 2 = a corner.
+NEIGHBOUR_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1)
+                              for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)], np.int32)
+NEIGHBOUR_SHELLS = (np.abs(NEIGHBOUR_OFFSETS).sum(axis=1) - 1).astype(np.int32)
+
+
+def smooth(state: MapState, keys: jax.Array, posterior: jax.Array) -> jax.Array:
+  """The spatial term (docs/equations.md §4.1): `(N, K) float32` smoothed posteriors of voxels
+  with keys `(N, 3) int32` and unsmoothed posteriors `(N, K)`, from their observed neighbours
+  in `state` (jittable; the caller keeps the result only where the voxel itself is observed).
+
+  The 26 neighbours are visited one offset after another (a `lax.scan`: memory O(N·K), not
+  O(26·N·K)); each is found through the hash, and its unsmoothed posterior is read from its row.
+  """
+  num_classes = posterior.shape[-1]
+
+  def visit(carry, item):
+    sums, counts = carry
+    offset, shell = item
+    slots, found = hashing.lookup(state.keys, keys + offset, max_probes=state.max_probes)
+    seen = found & observed_at(state, slots)
+    near = jax.vmap(state.posterior_fn)(jax.tree.map(lambda r: r[slots], state.rows))
+    at = jax.nn.one_hot(shell, 3, dtype=jnp.float32)                      # (3,)
+    sums = sums + jnp.where(seen[:, None, None], at[None, :, None] * near[:, None, :], 0.0)
+    counts = counts + seen[:, None].astype(jnp.float32) * at[None, :]
+    return (sums, counts), None
+
+  n = keys.shape[0]
+  init = (jnp.zeros((n, 3, num_classes), jnp.float32), jnp.zeros((n, 3), jnp.float32))
+  (sums, counts), _ = jax.lax.scan(
+      visit, init, (jnp.asarray(NEIGHBOUR_OFFSETS), jnp.asarray(NEIGHBOUR_SHELLS)))
+  means = sums / jnp.maximum(counts, 1.0)[..., None]                      # (N, 3, K)
+  evidence = jnp.einsum("nsk,ks->nk", means, state.spatial)
+  return jax.nn.softmax(numerics.safe_log(posterior) + evidence, axis=-1)
+
+
+@jax.jit
+def _posteriors_at(state: MapState, slots: jax.Array) -> jax.Array:
+  """`(N, K)` posteriors of the voxels at `slots` (smoothed where the map has a spatial
+  kernel; the slots are observed ones)."""
+  posterior = jax.vmap(state.posterior_fn)(jax.tree.map(lambda r: r[slots], state.rows))
+  if state.spatial is not None:
+    posterior = smooth(state, state.keys[slots], posterior)
+  return posterior
 
 
 class QueryResult(NamedTuple):
@@ -70,6 +121,8 @@ def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
   slots, found = hashing.lookup(state.keys, keys, max_probes=state.max_probes)
   found = found & in_range & observed_at(state, slots)
   posterior = jax.vmap(state.posterior_fn)(jax.tree.map(lambda r: r[slots], state.rows))
+  if state.spatial is not None:       # docs/equations.md §4.1: the voxel's smoothed posterior
+    posterior = smooth(state, keys, posterior)
   posterior = jnp.where(found[:, None], posterior, _prior_posterior(state)[None, :])
   hits = jnp.where(found, state.hits[slots], 0)
   return QueryResult(
@@ -213,7 +266,12 @@ def read_map(state: MapState, *, classes: Optional[Sequence[int]] = None,
   slots = occupied[order]
   coords = coords[order]
   rows = jax.tree.map(lambda r: jnp.asarray(r)[slots], state.rows)
-  posterior = jax.vmap(state.posterior_fn)(rows)
+  if state.spatial is None:
+    posterior = jax.vmap(state.posterior_fn)(rows)
+  else:   # padded to a power of two: a few compiled programs for every map size
+    padded = np.zeros(1 << max(int(len(slots)) - 1, 0).bit_length(), np.int32)
+    padded[:len(slots)] = slots
+    posterior = _posteriors_at(state, jnp.asarray(padded))[:len(slots)]
   out = {
       "coords": coords.astype(np.int32),
       "centers": ((coords + 0.5) * float(state.voxel_size)).astype(np.float32),

@@ -49,6 +49,9 @@ class MapState:
   # The free-space layer (occupancy log-odds per slot, docs/equations.md §10), or None: the same
   # pytree and program as before the layer existed.
   free_space: Optional[free_space_lib.FreeSpaceState] = None
+  # The spatial term's per-class kernel `(K, 3)` of the rule the map was made for (docs/
+  # equations.md §4.1), or None: the read-out reports unsmoothed posteriors, as before.
+  spatial: Optional[jax.Array] = None
 
   @property
   def capacity(self) -> int:
@@ -88,7 +91,9 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
       Keep the fill below ~50 % for short probes (docs/equations.md §1.3).
     num_classes: K ≥ 2.
     voxel_size: voxel edge in metres (> 0).
-    rule: the FusionRule this map will be fused with; it owns the per-voxel rows.
+    rule: the FusionRule this map will be fused with; it owns the per-voxel rows. A rule whose
+      parameters hold `spatial` (`(K, 3)`, docs/equations.md §4.1) gives the map that kernel:
+      its read-out reports smoothed posteriors.
     max_probes: bound on the linear-probing sequence; keys that find no slot within it are
       dropped and counted.
     geometry: switches the geometry layer on: a `tsdf.TSDFConfig` (or a `TSDFState`, e.g. an
@@ -128,6 +133,10 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
                     f"{type(geometry).__name__}")
   row = rule.init(num_classes, rule.hparams)
   rows = jax.tree.map(lambda x: jnp.tile(jnp.asarray(x, jnp.float32)[None], (capacity, 1)), row)
+  spatial = rule.hparams.get("spatial") if isinstance(rule.hparams, dict) else None
+  if spatial is not None and jnp.shape(spatial) != (num_classes, 3):
+    raise ValueError(f"spatial must have shape (K, 3) = ({num_classes}, 3), one weight per "
+                     f"class and neighbour shell; got {jnp.shape(spatial)}")
   return MapState(
       keys=hashing.empty_table(capacity),
       hits=jnp.zeros(capacity, jnp.int32),
@@ -142,6 +151,8 @@ def init_map(*, capacity: int, num_classes: int, voxel_size: float = 0.1,
       confidence_fn=rule.confidence,
       geometry=geometry,
       free_space=free_space_lib.init_free_space(capacity, free_space),
+      # A copy: fuse_frame donates the map, and the rule's own leaf must outlive it.
+      spatial=None if spatial is None else jnp.array(spatial, jnp.float32, copy=True),
   )
 
 

@@ -90,7 +90,8 @@ def add_parser(subparsers) -> None:
   parser.add_argument("--terms", nargs="*", choices=learn.FAMILY_TERMS, default=["moments"],
                       help="--family family: the terms fitted beside the table (moments: a "
                            "log-weight over the MC moment features; context: over --context; "
-                           "beta: R's regularisation; mix: D's concentration)")
+                           "beta: R's regularisation; mix: D's concentration; spatial: a per-class "
+                           "kernel over the 26 neighbours at read-out, docs/equations.md §4.1)")
   parser.add_argument("--start-table", default=None, metavar="PARAMS_JSON",
                       help="--family family: the GLFS (or family) params.json whose table the "
                            "fit starts from (default: the shipped GLFS table)")

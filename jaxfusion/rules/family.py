@@ -9,6 +9,10 @@ moment features and ψ_j its scaled context (§3.9):
           · sigmoid(θ_ĉ · φ_j + θᶜ_ĉ · ψ_j + b_ĉ)              term "sigmoid"   (§3.9)
     o_t   = Σ_j w_j · ((1 − δ) + δ · α_j / ᾱ_t) · log p̃_j      terms "beta" (R), "mix" (D)
     log P_t = normalise(s_t ⊙ log P_{t−1} + g_t · o_t)          term "gate"      (§3.9)
+    P̃_v = softmax(log P_v + Σ_s λ_{:,s} ⊙ mean_{n in shell s} P_n)   term "spatial" (§4.1)
+
+The spatial term acts at read-out: `init_map` keeps λ in the map, and `voxel_posteriors`,
+`read_map`, `query` and the mesh labels smooth with it; fusion never reads it.
 
 A term is present exactly when its parameters are (`terms`), and a rule without it computes
 nothing for it: only the table is GLFS's program, nothing is Bayes's, a §3.9 parameter set is
@@ -38,9 +42,10 @@ from jaxfusion.rules.baselines import log_posterior
 # are given.
 TERMS = {"table": ("table",), "moments": ("moment_weights",), "context": ("context_weights",),
          "sigmoid": ("theta", "bias", "context_theta"), "beta": ("beta",), "mix": ("mix",),
-         "gate": ("gate",)}
+         "gate": ("gate",), "spatial": ("spatial",)}
 PARAM_NAMES = ("table", "depth_edges", "angle_edges", "moment_weights", "context_weights",
-               "theta", "bias", "context_theta", "beta", "mix", "gate", "eps", "alpha0")
+               "theta", "bias", "context_theta", "beta", "mix", "gate", "spatial", "eps",
+               "alpha0")
 # The exponent of the unbounded factor is clipped to ±CLIP (docs/equations.md §3.11).
 CLIP = 15.0
 NUM_FEATURES = learned_lib.NUM_FEATURES
@@ -83,6 +88,9 @@ def _check_shapes(hparams, num_classes, num_context):
                        f"{width}); got {shape}")
   base.check_class_shapes(hparams, num_classes,
                           tuple(n for n in ("bias", "beta") if n in hparams))
+  if "spatial" in hparams and jnp.shape(hparams["spatial"]) != (num_classes, 3):
+    raise ValueError(f"spatial must have shape (K, 3) = ({num_classes}, 3), one weight per "
+                     f"class and neighbour shell; got {jnp.shape(hparams['spatial'])}")
 
 
 def _init(num_classes, hparams):
@@ -220,7 +228,8 @@ def family(params: dict = None, *, context=(), aggregate: str = "sum",
       `(F,)` or `(K, F)`; the sigmoid factor `theta` `(6,)` or `(K, 6)`, `bias` `()` or `(K,)`,
       `context_theta` `(F,)` or `(K, F)` (missing ones of the three at θ = 0, b = 30, θᶜ = 0);
       `beta` `()` or `(K,)` in [0, 1] (R); `mix` `()` δ in [0, 1] (D, with `alpha0`); `gate`
-      `(3,)` or `(5,)`; `eps` and `alpha0` the fixed leaves of α (defaults of §3.8). A
+      `(3,)` or `(5,)`; `spatial` `(K, 3)` the read-out's kernel over the face, edge and
+      corner neighbours (docs/equations.md §4.1); `eps` and `alpha0` the fixed leaves of α (defaults of §3.8). A
       `"context"` entry (a list of names, as `params.json` stores it) is the same as the
       keyword. None or `{}`: Bayes.
     context: the F per-pixel context features (`jaxfusion.context.FEATURES`) that the context
@@ -284,6 +293,10 @@ def family(params: dict = None, *, context=(), aggregate: str = "sum",
       raise ValueError(f"{name} must be a scalar; got shape {jnp.shape(hparams[name])}")
   if "gate" in hparams and jnp.shape(hparams["gate"]) not in ((3,), (5,)):
     raise ValueError(f"gate must have shape (3,) or (5,); got {jnp.shape(hparams['gate'])}")
+  if "spatial" in hparams and (jnp.ndim(hparams["spatial"]) != 2
+                               or jnp.shape(hparams["spatial"])[1] != 3):
+    raise ValueError(f"spatial must have shape (K, 3), one weight per class and neighbour "
+                     f"shell (face, edge, corner); got {jnp.shape(hparams['spatial'])}")
   if "table" in hparams and jnp.ndim(hparams["table"]) != 3:
     raise ValueError(f"the family's table must have shape (K, depth bins, angle bins); got "
                      f"{jnp.shape(hparams['table'])}")
