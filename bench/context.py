@@ -8,7 +8,11 @@ median of repeats after the warm-up) for one rule, beside its peer in the same r
 - the learned rule reading every context feature (and per-class weights, γ of 5) against the
   learned rule without context;
 - GLFS (depth and incidence) against Bayes, its special case;
-- `context.pixel_context` alone (every feature), against the fusion of one frame by D+R.
+- `context.pixel_context` alone (every feature), against the fusion of one frame by D+R;
+- the rule family (docs/equations.md §3.11) at the structure of its fits (GLFS's table, per-class
+  moment and geometry-context weights; with R and D switched in too), against D+R;
+- `read_map` of a family map with the spatial term (§4.1) against `read_map` of the same map
+  without it.
 
 Rules that read no context run the program they ran before (tests/engine/test_context.py checks
 that their traced program holds no context computation), so their rows are the reference. Writes
@@ -50,10 +54,41 @@ def _rules(k: int) -> dict:
       "learned_context": jf.rules.learned(full, context=jf.context.FEATURES),
       "bayes": jf.rules.bayes(),
       "glfs": jf.rules.glfs(num_classes=k),
+      "family": jf.rules.family(_family_params(k), context=FAMILY_CONTEXT),
+      "family_rd": jf.rules.family({**_family_params(k), "beta": np.full(k, 0.01, np.float32),
+                                    "mix": 0.01}, context=FAMILY_CONTEXT),
   }
 
 
-PAIRS = (("learned", "robust_dr"), ("learned_context", "learned"), ("glfs", "bayes"))
+# The geometry context of the family's fits (`learn-rule --context geometry`).
+FAMILY_CONTEXT = ("depth", "incidence", "depth_edge", "label_edge", "radius")
+
+
+def _family_params(k: int) -> dict:
+  return {"table": np.ones((k, 5, 4), np.float32), "moment_weights": np.zeros((k, 6), np.float32),
+          "context_weights": np.zeros((k, len(FAMILY_CONTEXT)), np.float32)}
+
+
+PAIRS = (("learned", "robust_dr"), ("learned_context", "learned"), ("glfs", "bayes"),
+         ("family", "robust_dr"), ("family_rd", "robust_dr"))
+
+
+def _time_read_out(frames, rgb, *, capacity, repeats, voxel_size) -> dict:
+  """`read_map` of one family map fused from the frames, with and without the spatial kernel."""
+  k = frames.probs.shape[-1]
+  rule = jf.rules.family({**_family_params(k), "spatial": np.full((k, 3), 0.5, np.float32)},
+                         context=FAMILY_CONTEXT)
+  state = jf.init_map(capacity=capacity, num_classes=k, voxel_size=voxel_size, rule=rule)
+  for t in range(len(frames.depth)):
+    state = jf.fuse_frame(state, jf.Frame(frames.depth[t], frames.poses[t], frames.probs[t],
+                                          frames.var[t], rgb[t]), frames.camera, rule)
+  plain = state.replace(spatial=None)
+  out = {}
+  for name, s in (("read_map", plain), ("read_map_spatial", state)):
+    seconds = suite.median_time(lambda s=s: jf.read_map(s)["posterior"], repeats)
+    out[name] = {"ms_per_frame": 1e3 * seconds, "frames_per_s": 1.0 / seconds,
+                 "voxels": int(state.num_occupied)}
+  return out
 
 
 def _time_rule(rule, frames, rgb, *, capacity, repeats, voxel_size) -> float:
@@ -82,8 +117,11 @@ def run(*, num_frames: int = 6, height: int = 480, width: int = 640, num_classes
   counter = iter(range(10**9))
   seconds = suite.median_time(lambda: ctx(next(counter) % num_frames), repeats)
   rows["pixel_context"] = {"ms_per_frame": 1e3 * seconds, "frames_per_s": 1.0 / seconds}
+  rows.update(_time_read_out(frames, rgb, capacity=capacity, repeats=repeats,
+                             voxel_size=voxel_size))
   pairs = [{"rule": a, "peer": b, "ratio": rows[a]["ms_per_frame"] / rows[b]["ms_per_frame"]}
-           for a, b in PAIRS + (("pixel_context", "robust_dr"),)]
+           for a, b in PAIRS + (("pixel_context", "robust_dr"),
+                                ("read_map_spatial", "read_map"))]
   return {"machine": suite.machine(), "height": height, "width": width,
           "num_classes": num_classes, "num_frames": num_frames, "repeats": repeats,
           "rows": rows, "pairs": pairs, "date": time.strftime("%Y-%m-%d")}
