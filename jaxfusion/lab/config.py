@@ -17,9 +17,10 @@ ROBUST_RULES = ("robust_r", "robust_d", "robust_dr")
 
 
 def uses_moments(rule_name: str) -> bool:
-  """Whether a rule is fused on the MC moments (the robust rules and the learned one) rather
-  than on the dropout-off pass (the baselines), the paper's setting."""
-  return rule_name in ROBUST_RULES or rule_name == "learned"
+  """Whether a rule is fused on the MC moments (the robust rules and the fitted ones: learned,
+  GLFS, the rule family) rather than on the dropout-off pass (the baselines), the paper's
+  setting and the study's."""
+  return rule_name in ROBUST_RULES or rule_name in ("learned", "glfs", "family")
 
 
 @dataclasses.dataclass(frozen=True)

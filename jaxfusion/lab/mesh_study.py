@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 import jaxfusion as jf
 from jaxfusion import datasets
 from jaxfusion import io
+from jaxfusion import learn
 from jaxfusion import metrics
 from jaxfusion import surface_metrics
 from jaxfusion.datasets import surfaces
@@ -45,6 +46,8 @@ from jaxfusion.lab import stats
 from jaxfusion.lab import study
 
 LEARNED = study.LEARNED
+# More fitted rows (`--variant TAG=PARAMS_JSON`) are named "fitted:<tag>".
+FITTED_PREFIX = "fitted:"
 GEOMETRY_KEYS = ("accuracy", "completeness", "chamfer_l1", "precision@0.05", "recall@0.05",
                  "fscore@0.05", "precision@0.02", "recall@0.02", "fscore@0.02")
 CM_KEYS = ("accuracy", "completeness", "chamfer_l1")
@@ -61,6 +64,8 @@ class MeshStudyConfig:
     learned: parameters of `rules.learned`, fused on the MC moments as a seventh row (None: the
       six paper rules only).
     learned_source: where `learned` came from, for the report.
+    fitted: more fitted rows, `((tag, family, params), …)` (`--variant TAG=PARAMS_JSON`: GLFS,
+      a learned rule or a member of the rule family), each a row "fitted:<tag>".
     surface_spacing: thinning grid of the true surface, metres.
     upsample: rays per pixel (per axis) of the true surface's ray cast.
     num_resamples: bootstrap resamples.
@@ -70,6 +75,7 @@ class MeshStudyConfig:
   geometry: jf.tsdf.TSDFConfig = demo.GEOMETRY
   learned: Optional[dict] = None
   learned_source: Optional[str] = None
+  fitted: tuple = ()
   surface_spacing: float = surfaces.DEFAULT_SPACING
   upsample: int = surfaces.DEFAULT_UPSAMPLE
   num_resamples: int = stats.DEFAULT_RESAMPLES
@@ -81,20 +87,26 @@ class MeshStudyConfig:
     runs the study's grid; quick one office sequence at shifts 0 and 1, 12 frames at 60×80."""
     learned = run.pop("learned", None)
     source = run.pop("learned_source", None)
+    fitted = tuple(run.pop("fitted", None) or ())
     num_resamples = run.pop("num_resamples", None)
     base = study.StudyConfig.quick().run if quick else study.StudyConfig().run
     if quick:
       base = dataclasses.replace(base, envs=("office",), shifts=(0.0, 1.0))
-    out = cls(run=config_lib.replace(base, **run), learned=learned, learned_source=source)
+    out = cls(run=config_lib.replace(base, **run), learned=learned, learned_source=source,
+              fitted=fitted)
     return dataclasses.replace(out, num_resamples=num_resamples) if num_resamples else out
 
   @property
   def rule_names(self) -> list:
-    return list(self.run.rules) + ([LEARNED] if self.learned is not None else [])
+    return (list(self.run.rules) + ([LEARNED] if self.learned is not None else [])
+            + [FITTED_PREFIX + tag for tag, _, _ in self.fitted])
 
   def make_rule(self, name: str):
     if name == LEARNED:
       return jf.rules.learned(self.learned, aggregate=self.run.aggregate)
+    for tag, family, params in self.fitted:
+      if name == FITTED_PREFIX + tag:
+        return learn.rule_of(family, params, aggregate=self.run.aggregate)
     return self.run.make_rule(name)
 
   def validate(self) -> "MeshStudyConfig":
@@ -167,7 +179,8 @@ def summarize(per_sequence: list, config: MeshStudyConfig) -> dict:
   rows = {}
   for n in names:
     _, _, mesh_acc = surface_metrics.iou_from_padded(mesh[n].sum(0))
-    row = {"display": jf.rules.display_name(config.make_rule(n)),
+    tag = f" ({n[len(FITTED_PREFIX):]})" if n.startswith(FITTED_PREFIX) else ""
+    row = {"display": jf.rules.display_name(config.make_rule(n)) + tag,
            "voxel_miou": float(stats.miou(voxel[n].sum(0))),
            "mesh_miou": float(_padded_miou(mesh[n].sum(0))), "mesh_accuracy": mesh_acc,
            "mesh_iou": surface_metrics.iou_from_padded(mesh[n].sum(0))[0].tolist()}
@@ -312,6 +325,7 @@ def run_mesh_study(config: MeshStudyConfig, out_dir: str, *, cache_dir: Optional
   record = {"config": {"run": dataclasses.asdict(run),
                        "geometry": dataclasses.asdict(config.geometry),
                        "learned_source": config.learned_source,
+                       "fitted": [[tag, family] for tag, family, _ in config.fitted],
                        "surface_spacing": config.surface_spacing, "upsample": config.upsample,
                        "num_resamples": config.num_resamples,
                        "confidence": config.confidence},
@@ -403,6 +417,7 @@ def run_mesh_study_data(config: MeshStudyConfig, out_dir: str, specs, options, *
   record = {"config": {"data": [str(s) for s in specs], "run": dataclasses.asdict(config.run),
                        "geometry": dataclasses.asdict(config.geometry),
                        "learned_source": config.learned_source,
+                       "fitted": [[tag, family] for tag, family, _ in config.fitted],
                        "surface_spacing": config.surface_spacing,
                        "num_resamples": config.num_resamples, "confidence": config.confidence},
             "classes": list(classes), "summary": summary, "sequences": names}
@@ -421,9 +436,27 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                  help="1 seed × office × 1 trajectory × shifts 0 and 1, 12 frames at 60×80")
   p.add_argument("--out", default="outputs/mesh_study", help="output folder")
   flags.add_study_run(p, seeds_help=" (default the study's: 1 2 3)")
+  p.add_argument("--variant", action="append", default=[], metavar="TAG=PARAMS_JSON",
+                 help="one more fitted row (repeatable): a params.json of `jaxfusion "
+                      "learn-rule` (GLFS, a learned rule or a member of the rule family)")
   flags.add_data(p)
   p.set_defaults(func=main)
   return p
+
+
+def fitted_rows(specs) -> tuple:
+  """`((tag, family, params), …)` of `--variant TAG=PARAMS_JSON` flags (any fitted family)."""
+  out = []
+  for spec in specs or []:
+    tag, sep, path = spec.partition("=")
+    if not sep or not tag or not path:
+      raise ValueError(f"--variant takes TAG=PARAMS_JSON; got {spec!r}")
+    family, params = learn.load_rule(path)
+    out.append((tag, family, params))
+  tags = [t for t, _, _ in out]
+  if len(set(tags)) != len(tags):
+    raise ValueError(f"--variant tags must differ; got {tags}")
+  return tuple(out)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -436,7 +469,7 @@ def main(args: argparse.Namespace) -> int:
       trajectories=flags.as_tuple(args.trajectories), num_frames=args.frames,
       height=args.height, width=args.width, num_samples=args.num_samples, beta=args.beta,
       aggregate=args.aggregate, mc_seed=args.mc_seed, learned=learned, learned_source=source,
-      num_resamples=args.resamples)
+      num_resamples=args.resamples, fitted=fitted_rows(args.variant))
   data = flags.data_sets(args, "data")["--data"]
   if data is not None:
     options = flags.run_data_options(args, config.run)

@@ -20,14 +20,19 @@ def test_tiny_mesh_study_end_to_end(tmp_path):
   config = mesh_study.MeshStudyConfig.of(
       layout_seeds=(0,), shifts=(0.0, 1.0), envs=("office",), trajectories=(0,), num_frames=3,
       height=H, width=W, num_samples=3, capacity=CAPACITY, num_resamples=50,
-      rules=("bayes", "robust_dr"), learned=jf.rules.learned_special_case("robust_dr"), learned_source="D+R special case")
+      rules=("bayes", "robust_dr"), learned=jf.rules.learned_special_case("robust_dr"),
+      learned_source="D+R special case",
+      fitted=(("dr", "family", {"mix": 1.0, "beta": 0.3}),))   # the family's D+R member
   out = mesh_study.run_mesh_study(config, str(tmp_path), front_end=SimulatedFrontEnd())
   for name in ("mesh_study.md", "mesh_study.json", "mesh_study.png",
                "mesh_office_0_test_shift0.png"):
     assert (tmp_path / name).stat().st_size > 200, name
   payload = json.loads((tmp_path / "mesh_study.json").read_text())
   rows = payload["summary"]["rules"]
-  assert list(rows) == ["bayes", "robust_dr", "learned"]
+  assert list(rows) == ["bayes", "robust_dr", "learned", "fitted:dr"]
+  assert rows["fitted:dr"]["display"] == "Family (dr)"
+  assert abs(rows["fitted:dr"]["mesh_miou"] - rows["robust_dr"]["mesh_miou"]) < 0.01
+  assert payload["config"]["fitted"] == [["dr", "family"]]
   assert rows["bayes"]["mesh_vs_bayes"] == [0.0, 0.0, 0.0]
   for key in ("voxel_miou", "mesh_miou", "mesh_accuracy", "mesh_iou"):
     np.testing.assert_array_equal(np.asarray(rows["learned"][key], float),
@@ -66,3 +71,5 @@ def test_pooled_mesh_iou_is_the_sum_of_the_sequences_area_confusions():
 def test_command_line_errors_are_one_line(capsys):
   assert cli.main(["mesh-study", "--quick", "--frames", "0", "--no-learned-rule"]) == 2
   assert "--frames must be at least 1" in capsys.readouterr().err
+  assert cli.main(["mesh-study", "--quick", "--variant", "no-equals-sign"]) == 2
+  assert "--variant takes TAG=PARAMS_JSON" in capsys.readouterr().err
