@@ -3,14 +3,13 @@
 A camera walks 2,000 frames down a 60 m corridor (2.4 m wide, 2.7 m high, rough walls; 120×160
 depth, K = 13, D+R) into a `Mapper` with a 5 cm geometry layer, both starting small (2^14 slots,
 2^10 blocks), so each layer grows several times. Each configuration of the `Mapper` (growth
-factor 2, 4 or 8, `compile_ahead` off or on) runs the same frames in a fresh process of its
+factor 2, 4 or 8) runs the same frames in a fresh process of its
 own (its programs compiled by itself), and is timed frame by frame beside the same frames fused
 into a map allocated at the final capacities from the start (compiled first): the flat
 baseline. Reported:
 
 * growth share: (time of the growing run − time of the fixed map) / time of the growing run,
-  the first frame (a compile in either run) left out of both — everything growth costs, the
-  background compiles' use of the cores included;
+  the first frame (a compile in either run) left out of both — everything growth costs;
 * the frames that grew a layer: each one's time, and their excess over the median frame;
 * the worst frame apart from the first (the longest stall) and the first frame.
 
@@ -34,13 +33,11 @@ import numpy as np
 
 K = 13
 LENGTH, HALF_WIDTH, HEIGHT = 60.0, 1.2, 2.7
-# (name, growth factor, compile_ahead, persistent compilation cache warmed by a first run)
-CONFIGS = (("factor 2, compile on the frame that grows", 2, False, False),
-           ("factor 2, compile ahead", 2, True, False),
-           ("factor 4, compile on the frame that grows", 4, False, False),
-           ("factor 4, compile ahead", 4, True, False),
-           ("factor 8, compile on the frame that grows", 8, False, False),
-           ("factor 4, a repeat run with JAX's persistent compilation cache", 4, False, True))
+# (name, growth factor, persistent compilation cache warmed by a first run)
+CONFIGS = (("factor 2, compile on the frame that grows", 2, False),
+           ("factor 4, compile on the frame that grows", 4, False),
+           ("factor 8, compile on the frame that grows", 8, False),
+           ("factor 4, a repeat run with JAX's persistent compilation cache", 4, True))
 
 
 def corridor_depth(T_world_cam: np.ndarray, camera, height: int, width: int) -> np.ndarray:
@@ -86,7 +83,7 @@ def _data(num_frames: int, height: int, width: int):
   return frames, camera
 
 
-def run_one(num_frames: int, height: int, width: int, factor: int, ahead: bool) -> dict:
+def run_one(num_frames: int, height: int, width: int, factor: int) -> dict:
   """One configuration, in this process: the growing run and the fixed-capacity baseline."""
   import jax
   import jaxfusion as jf
@@ -94,14 +91,13 @@ def run_one(num_frames: int, height: int, width: int, factor: int, ahead: bool) 
   rule = jf.rules.robust()
   geometry = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**10)
   mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14, geometry=geometry,
-                     growth_factor=factor, compile_ahead=ahead)
+                     growth_factor=factor)
   seconds = []
   for frame in frames:
     start = time.perf_counter()
     jax.block_until_ready(mapper.fuse(frame, camera).rows)
     seconds.append(time.perf_counter() - start)
   grew = sorted({t for t, _, _ in mapper.growths} | {t for t, _, _ in mapper.geometry_growths})
-  mapper.wait_for_compiles()
   # The fixed baseline: the final capacities from the start, compiled before timing.
   config = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=mapper.state.geometry.capacity)
   def fresh():
@@ -118,7 +114,7 @@ def run_one(num_frames: int, height: int, width: int, factor: int, ahead: bool) 
   median = float(np.median(seconds[1:]))
   later = [t for t in grew if t > 0]
   return {
-      "growth_factor": factor, "compile_ahead": ahead,
+      "growth_factor": factor,
       "semantic_growths": [list(g) for g in mapper.growths],
       "geometry_growths": [list(g) for g in mapper.geometry_growths],
       "voxels": int(mapper.state.num_occupied), "dropped": int(mapper.state.num_dropped),
@@ -160,18 +156,18 @@ def main(argv=None) -> None:
                                    description=__doc__.split("\n")[0])
   parser.add_argument("--quick", action="store_true", help="300 frames at 60×80")
   parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"))
-  parser.add_argument("--one", nargs=5, type=int, help=argparse.SUPPRESS)   # a child run
+  parser.add_argument("--one", nargs=4, type=int, help=argparse.SUPPRESS)   # a child run
   args = parser.parse_args(argv)
   if args.one:
     if os.environ.get("BENCH_GROWTH_CACHE"):
       from jaxfusion.lab import compile_cache   # the `jaxfusion` commands' cache, as they use it
       compile_cache.enable()
-    frames, height, width, factor, ahead = args.one
-    print(json.dumps(run_one(frames, height, width, factor, bool(ahead))))
+    frames, height, width, factor = args.one
+    print(json.dumps(run_one(frames, height, width, factor)))
     return
   frames, height, width = (300, 60, 80) if args.quick else (2000, 120, 160)
   runs = []
-  for name, factor, ahead, cached in CONFIGS:
+  for name, factor, cached in CONFIGS:
     # A process per configuration: each compiles its own programs, as a user's run would.
     with tempfile.TemporaryDirectory() as cache:
       env = dict(os.environ)
@@ -179,7 +175,7 @@ def main(argv=None) -> None:
         env.update(JAXFUSION_COMPILE_CACHE=cache, BENCH_GROWTH_CACHE="1")
       for _ in range(2 if cached else 1):      # a cached run is timed on its second go
         child = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
-                                str(height), str(width), str(factor), str(int(ahead))],
+                                str(height), str(width), str(factor)],
                                capture_output=True, text=True, check=True, env=env,
                                cwd=pathlib.Path(__file__).parent.parent)
     runs.append(json.loads(child.stdout.strip().splitlines()[-1]))

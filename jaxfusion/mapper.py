@@ -18,7 +18,6 @@ Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
 import collections
-import concurrent.futures
 from typing import Optional
 
 import jax
@@ -71,54 +70,6 @@ def _valid_depth_count(depth) -> int:
   return int(np.count_nonzero(np.isfinite(depth) & (depth > 0)))
 
 
-def _shapes(tree, old: Optional[int] = None, new: Optional[int] = None):
-  """`tree`'s leaves as `jax.ShapeDtypeStruct`s, a leading dimension `old` made `new`."""
-  def one(x):
-    shape = tuple(np.shape(x))
-    if old is not None and shape and shape[0] == old:
-      shape = (new,) + shape[1:]
-    return jax.ShapeDtypeStruct(shape, jnp.result_type(x),
-                                weak_type=bool(getattr(x, "weak_type", False)))
-  return jax.tree.map(one, tree)
-
-
-def abstract_map(state: state_lib.MapState, capacity: int,
-                 geometry_capacity: Optional[int] = None) -> state_lib.MapState:
-  """The shapes of `state` grown to `capacity` slots (and its geometry layer to
-  `geometry_capacity` blocks): what `grow_map` / `grow_tsdf` would return, as
-  `ShapeDtypeStruct` leaves, for compiling the programs of a larger map before it exists."""
-  geometry = state.geometry
-  out = _shapes(state.replace(geometry=None), state.capacity, capacity)
-  if geometry is not None:
-    out = out.replace(geometry=_shapes(geometry, geometry.capacity,
-                                       geometry.capacity if geometry_capacity is None
-                                       else geometry_capacity))
-  return out
-
-
-def _compile_semantic(state, frame, camera, rule, capacity: int) -> None:
-  """Compiles (into JAX's cache) what a growth of the semantic table to `capacity` slots will
-  call: the rehash, the room check and `fuse_frame` at the new size. `state` and `frame` are
-  shapes only (`ShapeDtypeStruct` leaves)."""
-  depth = jax.ShapeDtypeStruct((1,) + tuple(frame.depth.shape), jnp.float32)
-  poses = jax.ShapeDtypeStruct((1, 4, 4), jnp.float32)
-  prior = jax.tree.map(lambda r: jax.ShapeDtypeStruct(r.shape[1:], r.dtype), state.rows)
-  state_lib.grown_map.lower(state, prior, capacity=capacity).compile()
-  grown = abstract_map(state, capacity)
-  new_voxel_count.lower(grown, depth, poses, camera).compile()
-  fusion.fuse_frame_donating.lower(grown, frame, camera, rule).compile()
-
-
-def _compile_geometry(state, frame, camera, rule, capacity: int) -> None:
-  """The same for a growth of the geometry layer to `capacity` blocks."""
-  depth = jax.ShapeDtypeStruct((1,) + tuple(frame.depth.shape), jnp.float32)
-  poses = jax.ShapeDtypeStruct((1, 4, 4), jnp.float32)
-  tsdf_lib.grown_tsdf.lower(state.geometry, capacity=capacity).compile()
-  grown = abstract_map(state, state.capacity, capacity)
-  tsdf_lib.new_block_count.lower(grown.geometry, depth, poses, camera).compile()
-  fusion.fuse_frame_donating.lower(grown, frame, camera, rule).compile()
-
-
 class Mapper:
   """A map that grows before it could fill up (see the module docstring).
 
@@ -142,12 +93,6 @@ class Mapper:
       4 spends 47 % of the fuse time on growth, 2 spends 71 %, 8 31 % (with tables left as
       little as 1/16 full). JAX's persistent compilation cache (which the `jaxfusion` commands
       turn on) leaves a repeat run the rehash: 0.5–0.6 s per growth, 20 % at 4.
-    compile_ahead: after the first frame and after each growth, compile on a background thread
-      the programs the next growth of each layer will need (the rehash, the room check and
-      `fuse_frame` at the larger size), so that a growth that comes late enough costs the
-      rehash, not a compile. Off by default: on 2 cores the background compiles (of both
-      layers' next sizes, one of them often never used) slowed the walk more than they saved
-      (59 % against 47 % at factor 4); it pays where cores are spare and growths far apart.
     keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
       `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
       A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
@@ -166,8 +111,7 @@ class Mapper:
                voxel_size: float = 0.1, capacity: int = 2**16, grow_at: float = 0.5,
                max_capacity: int = 2**30,
                max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None,
-               free_space=False, keep_frames: int = 0, growth_factor: int = 4,
-               compile_ahead: bool = False):
+               free_space=False, keep_frames: int = 0, growth_factor: int = 4):
     if not 0.0 < grow_at < 1.0:
       raise ValueError(f"grow_at must lie in (0, 1); got {grow_at}")
     if not isinstance(max_capacity, (int, np.integer)) or max_capacity > 2**30:
@@ -179,10 +123,6 @@ class Mapper:
       raise ValueError(f"growth_factor must be 2, 4 or 8; got {growth_factor!r}")
     self.rule = rule
     self.growth_factor = int(growth_factor)
-    self.compile_ahead = bool(compile_ahead)
-    # The background compile of the next growth's programs: (sizes it prepares, Future).
-    self._ahead = None
-    self._pool = None
     self.keep_frames = int(keep_frames)
     self.kept = collections.OrderedDict()
     self._free_space = free_space
@@ -223,7 +163,6 @@ class Mapper:
     if capacity == self.state.capacity:
       return   # at max_capacity: fuse anyway; what does not fit is dropped and counted
     old = self.state.capacity
-    self.wait_for_compiles("semantic")   # not the same compile twice, here and behind
     self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
     self.growths.append((self.frames_fused, old, capacity))
 
@@ -243,7 +182,6 @@ class Mapper:
     while blocks + new > self.grow_at * capacity and capacity < 2**24:
       capacity = min(capacity * self.growth_factor, 2**24)
     if capacity != geometry.capacity:
-      self.wait_for_compiles("geometry")
       self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
       self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
 
@@ -264,47 +202,7 @@ class Mapper:
     self.state = fusion.fuse_frame(self.state, frame, camera, self.rule)
     self.frames_fused += 1
     self._keep(frame_id, frame, camera)
-    if self.compile_ahead:
-      self._compile_ahead(frame, camera)
     return self.state
-
-  # --- the next growth's programs, compiled ahead of need ------------------------------------
-  def _compile_ahead(self, frame: fusion.Frame, camera) -> None:
-    """Starts compiling the next growth's programs for frames like `frame`, unless that is
-    under way or done for the current sizes. The layer nearer its limit goes first."""
-    geometry = self.state.geometry
-    key = (self.state.capacity, None if geometry is None else geometry.capacity,
-           tuple(np.shape(frame.depth)))
-    if self._ahead is not None and self._ahead[0] == key:
-      return
-    if self._pool is None:
-      self._pool = concurrent.futures.ThreadPoolExecutor(
-          max_workers=1, thread_name_prefix="jaxfusion-compile-ahead")
-    shapes, frame_shapes = _shapes(self.state), _shapes(frame)
-    jobs = []
-    slots = min(self.state.capacity * self.growth_factor, self.max_capacity)
-    if slots > self.state.capacity:
-      jobs.append((int(self.state.num_occupied) / self.state.capacity, _compile_semantic, slots))
-    if geometry is not None and geometry.capacity < 2**24:
-      jobs.append((int(geometry.num_blocks) / geometry.capacity, _compile_geometry,
-                   min(geometry.capacity * self.growth_factor, 2**24)))
-    jobs.sort(key=lambda job: -job[0])
-    if self._ahead is not None:
-      for future in self._ahead[1].values():
-        future.cancel()                   # for sizes that are gone: drop it unless under way
-    self._ahead = (key, {fn: self._pool.submit(fn, shapes, frame_shapes, camera, self.rule, size)
-                         for _, fn, size in jobs})
-
-  def wait_for_compiles(self, layer: Optional[str] = None) -> None:
-    """Blocks until the background compile of the next growth's programs (`compile_ahead`)
-    has finished: of both layers, or of `layer` ("semantic" or "geometry"). A failed compile
-    is not an error here: a growth compiles what it calls itself, and says why if that fails
-    too."""
-    if self._ahead is None:
-      return
-    wanted = {"semantic": _compile_semantic, "geometry": _compile_geometry}.get(layer)
-    concurrent.futures.wait([f for fn, f in self._ahead[1].items()
-                             if wanted is None or fn is wanted])
 
   # --- kept frames: de-integration, re-integration, rebuild (docs/equations.md §11.3) -------
   def _new_id(self, frame_id, default):
