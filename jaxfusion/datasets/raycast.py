@@ -239,7 +239,7 @@ def _pow2_at_least(n: int) -> int:
 
 
 def tile_lists(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, width: int,
-               tile: int = 16, min_sizes=(0, 0, 0, 0)) -> TileLists:
+               tile: int = 16, min_sizes=(0, 0, 0, 0), candidates=None) -> TileLists:
   """Per-tile candidate lists for `cast` (host-side NumPy).
 
   Args:
@@ -251,12 +251,20 @@ def tile_lists(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, 
     tile: tile edge in pixels.
     min_sizes: lower bounds of the per-kind list lengths; pass the maximum over a sequence to
       give every frame the same shapes (one compilation).
+    candidates: optional `(P,) bool` over the rows of `scene.prims` (its padding included or
+      not): only these primitives may enter a list (None: all). A caller that knows some
+      primitives cannot be seen (e.g. beyond a sensor's range) leaves them out.
 
   Returns:
     `TileLists` whose lengths are powers of two (≥ 8, or 0 for a kind no tile sees).
   """
   prims = Primitives(*(np.asarray(x) for x in scene.prims))
   bounds = screen_bounds(prims, T_world_cam, camera)
+  keep = None
+  if candidates is not None:
+    keep = np.zeros(len(prims), bool)
+    given = np.asarray(candidates, bool).reshape(-1)[:len(prims)]
+    keep[:len(given)] = given
   ty = np.arange(-(-height // tile)) * tile
   tx = np.arange(-(-width // tile)) * tile
   lists = []
@@ -267,6 +275,8 @@ def tile_lists(scene: PackedScene, T_world_cam, camera: Camera, *, height: int, 
     over_v = (b[None, :, 3] >= ty[:, None] - 1) & (b[None, :, 2] <= ty[:, None] + tile)
     mask = (over_v[:, None, :] & over_u[None, :, :]).reshape(len(ty) * len(tx), -1)
     mask &= rows[None] >= 0
+    if keep is not None:
+      mask &= keep[np.maximum(rows, 0)][None]
     size = _pow2_at_least(max(int(mask.sum(1).max(initial=0)), int(min_size)))
     order = np.argsort(~mask, axis=1, kind="stable")[:, :size]
     picked = np.take_along_axis(mask, order, axis=1)

@@ -78,7 +78,7 @@ def expand(items: Iterable[str], *, what: str = "--data") -> list:
     except ValueError as e:
       where = f" (in {origin})" if origin else ""
       raise ValueError(f"{what}{where}: {e}") from None
-    if not spec.is_embedded and _PATTERN_CHARS & set(spec.path):
+    if spec.path is not None and _PATTERN_CHARS & set(spec.path):
       matches = sorted(p for p in glob.glob(os.path.expanduser(spec.path)) if os.path.isdir(p))
       if not matches:
         raise ValueError(f"{what}: no folder matches {item!r}")
@@ -105,9 +105,11 @@ def embedded_set(envs: Sequence[str], trajectories: Sequence[int], layout_seeds:
 
 def identity(spec: SequenceSpec) -> tuple:
   """What makes two sequences the same data: the layout seed of an embedded one (default 0),
-  the real path of a folder."""
+  a floor's rooms and layout seed, the real path of a folder."""
   if spec.is_embedded:
     return ("embedded layout seed", 0 if spec.layout_seed is None else int(spec.layout_seed))
+  if spec.kind == "floor":
+    return ("floor", int(spec.rooms), 0 if spec.layout_seed is None else int(spec.layout_seed))
   return ("folder", os.path.realpath(os.path.expanduser(spec.path)))
 
 
@@ -136,7 +138,12 @@ def sequence_name(spec: SequenceSpec) -> str:
   """A sequence's name in reports, caches and prediction folders: the folder's own name
   (`scannet:/data/scans/scene0000_00` → `scene0000_00`), or for an embedded sequence
   `ENV_TRAJECTORY_DOMAIN_sSEED_shiftX_CHANGE` (seed, shift and change when the spec names them:
-  `office:0:s1:moved` → `office_0_test_s1_moved`, never the name of `office:0:s1`)."""
+  `office:0:s1:moved` → `office_0_test_s1_moved`, never the name of `office:0:s1`), or for a
+  floor `floor_N_DOMAIN_sSEED_shiftX` (`floor:12:s3` → `floor_12_test_s3`)."""
+  if spec.kind == "floor":
+    name = f"floor_{spec.rooms}_{spec.domain}"
+    name += "" if spec.layout_seed is None else f"_s{spec.layout_seed}"
+    return name + ("" if spec.shift is None else f"_shift{spec.shift:g}")
   if not spec.is_embedded:
     return os.path.basename(os.path.normpath(spec.path))
   name = f"{spec.env}_{spec.trajectory}_{spec.domain}"

@@ -10,6 +10,10 @@ A sequence spec is a short string:
   any place of that tail (`changes.CHANGES`): `office:0:moved` (objects moved between two
   passes), `office:0:final` (both passes in the final room), `office:0:s2:drift:shift0.5`
   (drifting odometry poses); see `changes.make_changing_sequence`.
+* `floor:N` — an embedded floor of N rooms (1–100) joined by corridors, walked through by a
+  camera that enters every room (`floor.FloorWalk`; thousands of frames, rendered on demand).
+  A domain, a layout seed and a shift may follow, as for an embedded sequence: `floor:12:s3`,
+  `floor:12:train:shift0.5`; no change of the world.
 * `scannet:PATH` — an exported ScanNet scene folder (`load_scannet`).
 * `tum:PATH` — a TUM RGB-D sequence folder (`load_tum`).
 * `saved:PATH` — a folder written by `RGBDSequence.save` (`load_sequence`).
@@ -26,12 +30,13 @@ import os
 from typing import NamedTuple, Optional
 
 from jaxfusion.datasets import changes
+from jaxfusion.datasets import floor
 from jaxfusion.datasets import scannet
 from jaxfusion.datasets import synthetic
 from jaxfusion.datasets import tum
 from jaxfusion.datasets.sequence import RGBDSequence
 
-KINDS = ("synthetic", "scannet", "tum", "saved")
+KINDS = ("synthetic", "floor", "scannet", "tum", "saved")
 DOMAINS = ("test", "train")
 
 
@@ -48,6 +53,8 @@ class SequenceSpec(NamedTuple):
     shift: the embedded domain shift the spec names (None: the command's).
     change: the change of an embedded world (`changes.CHANGES`: "moved", "final", "drift")
       or None for the static one.
+    rooms: the number of rooms of a floor (None otherwise). A floor is not `is_embedded`
+      (it has no ENV:TRAJECTORY) but `is_rendered`: it takes a domain, seed and shift too.
   """
   kind: str
   env: Optional[str] = None
@@ -57,8 +64,14 @@ class SequenceSpec(NamedTuple):
   layout_seed: Optional[int] = None
   shift: Optional[float] = None
   change: Optional[str] = None
+  rooms: Optional[int] = None
 
   def __str__(self) -> str:
+    if self.kind == "floor":
+      tail = "" if self.domain == "test" else f":{self.domain}"
+      tail += "" if self.layout_seed is None else f":s{self.layout_seed}"
+      tail += "" if self.shift is None else f":shift{self.shift:g}"
+      return f"floor:{self.rooms}{tail}"
     if self.kind == "synthetic":
       tail = "" if self.domain == "test" else f":{self.domain}"
       tail += "" if self.layout_seed is None else f":s{self.layout_seed}"
@@ -71,10 +84,15 @@ class SequenceSpec(NamedTuple):
   def is_embedded(self) -> bool:
     return self.kind == "synthetic"
 
+  @property
+  def is_rendered(self) -> bool:
+    """Rendered by the embedded renderer (an embedded sequence or a floor), not read."""
+    return self.kind in ("synthetic", "floor")
+
   def resolved(self, *, layout_seed: int = 0, shift: float = 1.0) -> "SequenceSpec":
-    """An embedded spec with its layout seed and shift filled in (the spec's own win); a
+    """A rendered spec with its layout seed and shift filled in (the spec's own win); a
     folder's spec unchanged."""
-    if not self.is_embedded:
+    if not self.is_rendered:
       return self
     return self._replace(layout_seed=int(layout_seed if self.layout_seed is None
                                          else self.layout_seed),
@@ -86,6 +104,34 @@ _EMBEDDED_SYNTAX = (f"an embedded sequence is ENV:TRAJECTORY[:DOMAIN][:sSEED][:s
                     "test|train, a layout seed SEED ≥ 0, a shift X in [0, 1] and one CHANGE "
                     f"{'|'.join(changes.CHANGES)} (e.g. office:0, office:0:s1:shift0.5, "
                     "office:0:moved)")
+
+
+_FLOOR_SYNTAX = (f"a floor is floor:N[:DOMAIN][:sSEED][:shiftX] with N rooms in "
+                 f"1..{floor.MAX_ROOMS}, DOMAIN test|train, a layout seed SEED ≥ 0 and a shift X "
+                 "in [0, 1] (e.g. floor:12, floor:12:s3)")
+
+
+def _floor(rest: str, spec: str) -> SequenceSpec:
+  parts = rest.split(":")
+  if not parts[0].isdigit() or not 1 <= int(parts[0]) <= floor.MAX_ROOMS:
+    raise ValueError(f"{_FLOOR_SYNTAX}; got {spec!r}")
+  domain, seed, shift = None, None, None
+  for part in parts[1:]:
+    if part in DOMAINS and domain is None:
+      domain = part
+    elif part[:1] == "s" and part[1:].isdigit() and seed is None:
+      seed = int(part[1:])
+    elif part.startswith("shift") and shift is None:
+      try:
+        shift = float(part[len("shift"):])
+      except ValueError:
+        raise ValueError(f"{_FLOOR_SYNTAX}; got {spec!r}") from None
+      if not 0.0 <= shift <= 1.0:
+        raise ValueError(f"{_FLOOR_SYNTAX}; got {spec!r}")
+    else:
+      raise ValueError(f"{_FLOOR_SYNTAX}; got {spec!r}")
+  return SequenceSpec("floor", domain=domain or "test", layout_seed=seed, shift=shift,
+                      rooms=int(parts[0]))
 
 
 def _embedded(env: str, trajectory: str, tail, spec: str) -> SequenceSpec:
@@ -125,6 +171,8 @@ def parse_spec(spec: str) -> SequenceSpec:
     if not rest:
       raise ValueError(f"{head}: needs a folder, e.g. {head}:PATH; got {spec!r}")
     return SequenceSpec(head, path=rest)
+  if head == "floor":
+    return _floor(rest, spec)
   if head == "synthetic":            # the older spelling synthetic:ENV/TRAJECTORY[/DOMAIN]
     parts = rest.split("/")
     if len(parts) not in (2, 3):
@@ -134,8 +182,8 @@ def parse_spec(spec: str) -> SequenceSpec:
   parts = spec.split(":")
   if sep and 2 <= len(parts) <= 6 and parts[0] in synthetic.ENVIRONMENTS:
     return _embedded(parts[0], parts[1], parts[2:], spec)
-  raise ValueError(f"a sequence is ENV:TRAJECTORY[:DOMAIN] (e.g. office:0), scannet:PATH, "
-                   f"tum:PATH or saved:PATH; got {spec!r}")
+  raise ValueError(f"a sequence is ENV:TRAJECTORY[:DOMAIN] (e.g. office:0), floor:N (e.g. "
+                   f"floor:12), scannet:PATH, tum:PATH or saved:PATH; got {spec!r}")
 
 
 def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, width: int = 160,
@@ -148,19 +196,21 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
   Args:
     spec: a spec string or a `SequenceSpec`.
     num_frames: frames of an embedded sequence (default 60); the most frames read from a folder
-      (default all).
+      or walked through a floor, from the start (default all: a floor's whole walk, one frame
+      every `floor.STEP` · stride metres).
     height: image rows of an embedded sequence (folders keep their size).
     width: image columns of an embedded sequence.
     layout_seed: layout seed of the embedded world, unless the spec names one.
     shift: test-domain shift in [0, 1] of an embedded sequence, unless the spec names one.
-    stride: keep every stride-th frame of a folder.
+    stride: keep every stride-th frame of a folder or of a floor's walk.
     skip_bad: skip (and count, with one warning) unreadable frames of a folder.
     label_space: the classes a ScanNet folder's NYU40 GT is read into
       (`classes.LABEL_SPACES`; default "scannet12"); other kinds carry their own classes.
     label_tsv: ScanNet's `scannetv2-labels.combined.tsv`, when the folder's `label-filt/` holds
       raw ScanNet ids (as ScanNet's own 2D label exports do) rather than NYU40 ids.
-    **render: passed to `make_sequence` (`realism`, `sensing`), or to
-      `changes.make_changing_sequence` for a spec with a change.
+    **render: passed to `make_sequence` (`realism`, `sensing`), to
+      `changes.make_changing_sequence` for a spec with a change, or to
+      `floor.make_floor_sequence` for a floor.
 
   Returns:
     The `RGBDSequence`.
@@ -178,6 +228,11 @@ def load_spec(spec, *, num_frames: Optional[int] = None, height: int = 120, widt
       return changes.make_changing_sequence(spec.env, spec.trajectory, change=spec.change,
                                             **common, **render)
     return synthetic.make_sequence(spec.env, spec.trajectory, **common, **render)
+  if spec.kind == "floor":
+    spec = spec.resolved(layout_seed=layout_seed, shift=shift)
+    return floor.make_floor_sequence(spec.rooms, seed=spec.layout_seed, domain=spec.domain,
+                                     shift=spec.shift, num_frames=num_frames, stride=stride,
+                                     height=height, width=width, **render)
   if not os.path.isdir(spec.path):
     raise FileNotFoundError(f"{spec.kind}: no such folder {spec.path!r}")
   if spec.kind == "saved":

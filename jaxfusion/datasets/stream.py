@@ -7,7 +7,7 @@ names; TUM: the association of its lists; a saved sequence: its `meta.json`) and
 rendered whole (it is small) and sliced.
 
 The frames a stream yields are the frames `load_spec` reads with the same arguments, in the
-same order (a frame whose pose turns out invalid on reading is skipped and counted the same
+same order (a floor's walk is rendered chunk by chunk, `floor.FloorWalk`; a frame whose pose turns out invalid on reading is skipped and counted the same
 way), so a result computed chunk by chunk is the result of the whole sequence.
 """
 
@@ -41,8 +41,17 @@ class SequenceStream:
     self._label_space = label_space
     self._label_tsv = label_tsv
     self._whole = None
+    self._walk = None
     if int(stride) < 1:
       raise ValueError(f"stride must be ≥ 1; got {stride}")
+    if self.spec.kind == "floor":
+      from jaxfusion.datasets import floor  # pylint: disable=import-outside-toplevel
+      self._walk = floor.FloorWalk(
+          floor.make_floor(self.spec.rooms, seed=self.spec.layout_seed, domain=self.spec.domain,
+                           shift=self.spec.shift),
+          num_frames=num_frames, stride=self._stride, height=height, width=width, **render)
+      self.frame_ids = list(range(len(self._walk)))
+      return
     if self.spec.is_embedded:
       self._whole = specs_lib.load_spec(self.spec, num_frames=num_frames, height=height,
                                         width=width, **render)
@@ -72,6 +81,8 @@ class SequenceStream:
   def _read(self, position: int, size: int) -> Optional[RGBDSequence]:
     """Frames `frame_ids[position:position + size]` (None when all of them are unreadable)."""
     ids = self.frame_ids[position:position + size]
+    if self._walk is not None:
+      return self._walk.sequence(position, position + len(ids))
     if self._whole is not None:
       chunk = self._whole.subset(range(position, position + len(ids)))
       return _with_ids(chunk, ids)

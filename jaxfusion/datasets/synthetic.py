@@ -189,10 +189,10 @@ def _check_sensing(sensing) -> SensingConfig:
 
 
 def _cast(synthetic_scene: SyntheticScene, T, camera: Camera, height: int, width: int,
-          tile_sizes, pack_step: int):
+          tile_sizes, pack_step: int, candidates=None):
   packed = raycast.pack(synthetic_scene.primitives, step=pack_step)
   tiles = raycast.tile_lists(packed, T, camera, height=height, width=width, tile=TILE,
-                             min_sizes=tile_sizes)
+                             min_sizes=tile_sizes, candidates=candidates)
   return packed, raycast.cast(packed, T, camera, height=height, width=width, tiles=tiles,
                               tile=TILE)
 
@@ -211,7 +211,7 @@ def _to_uint8(rgb) -> np.ndarray:
 def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, height: int,
            width: int, realism: bool = False, key=None, tile_sizes=(0, 0, 0, 0),
            pack_step: int = 64, sensing: SensingConfig = None,
-           state: CameraState = None) -> RGBDFrame:
+           state: CameraState = None, candidates=None) -> RGBDFrame:
   """Renders one frame of a synthetic scene.
 
   Args:
@@ -236,6 +236,8 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
       during the exposure); default: a still camera whose auto-exposure has settled on this
       frame, neutral white balance, nominal noise. Sequences pass the states of their camera
       path (see `make_sequence`).
+    candidates: optional `(P,) bool`: the primitives that may be hit (`raycast.tile_lists`;
+      None: all). `floor` leaves out those beyond its sensor range.
 
   Returns:
     `RGBDFrame` with `rgb (H, W, 3) uint8`, `depth (H, W) float32`, `labels`/`instances`
@@ -243,7 +245,8 @@ def render(synthetic_scene: SyntheticScene, T_world_cam, camera: Camera, *, heig
   """
   config = _check_sensing(sensing)
   T = np.asarray(T_world_cam, np.float32)
-  packed, hits = _cast(synthetic_scene, T, camera, height, width, tile_sizes, pack_step)
+  packed, hits = _cast(synthetic_scene, T, camera, height, width, tile_sizes, pack_step,
+                       candidates)
   frame, _ = _finish(synthetic_scene, packed, hits, T, camera, realism=realism, key=key,
                      config=config, state=state)
   return frame

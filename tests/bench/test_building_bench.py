@@ -1,0 +1,28 @@
+"""The building bench (bench.building) runs its quick path on a tiny floor. No timings are
+asserted: `python -m bench.building` measures them."""
+
+import json
+
+import pytest
+
+from bench import building
+
+
+@pytest.mark.slow   # fuse, growth, read-out, query and meshing compiled at a few sizes: ~30–60 s
+def test_building_bench_runs_on_a_tiny_floor(tmp_path):
+  result = building.run(rooms=1, seed=0, height=24, width=32, voxel_size=0.1, num_frames=12,
+                        stride=10, window=4, capacity=2**10, blocks=2**6)
+  assert result["frames"] == 12 and result["voxels"] > 0 and result["dropped"] == 0
+  assert result["growths"], "a map started this small must grow"
+  assert result["windows"] and all(w["median_ms"] > 0 for w in result["windows"])
+  last = result["checkpoints"][-1]
+  assert last["frame"] == 11 and last["read_voxels"] == result["voxels"]
+  assert last["mesh_faces"] > 0 and last["query_points"] == building.NUM_QUERY
+  assert result["per_voxel"]["semantic_per_slot"] > 0
+  assert set(result["peers"]) == {"open3d_voxel_block_grid", "nvblox"}
+  text = building.table(result)
+  assert "| growth at frame |" in text and "nvblox" in text
+  json.dumps(result)                        # the record is JSON as written
+  building.main(["--quick", "--rooms", "1", "--frames", "6", "--height", "24", "--width", "32",
+                 "--out", str(tmp_path)])
+  assert json.loads((tmp_path / "building_quick.json").read_text())["quick"] is True
