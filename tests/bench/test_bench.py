@@ -13,6 +13,9 @@ from bench import numpy_peer
 from bench import scene
 from tests import engine_helpers
 
+# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.parametrize("rule_name", numpy_peer.RULES)
 @pytest.mark.parametrize("aggregate", ["sum", "mean"])

@@ -59,6 +59,7 @@ def _same_gt(got, want):
     np.testing.assert_array_equal(got[key], want[key])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("change", ["moved", "drift"])
 def test_streamed_gt_of_a_changing_world_is_its_gt(change, tmp_path):
   # Chunks of 2 of 6 frames: the moved sequence's chunk 1 straddles the passes (t1 = 3).

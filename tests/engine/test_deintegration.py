@@ -62,6 +62,7 @@ def _rows_at(state, name):
   return np.asarray(state.rows[name])[np.asarray(slots)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(INVERTIBLE))
 def test_unfuse_equals_the_map_without_the_frame(name):
   rule = INVERTIBLE[name]()
@@ -106,6 +107,7 @@ def test_unfusing_every_frame_empties_the_map():
   assert not np.any(np.asarray(jf.query(state, np.zeros((1, 3), np.float32)).found))
 
 
+@pytest.mark.slow
 def test_the_geometry_layer_is_de_integrated_too():
   rule = jf.rules.bayes()
   geometry = jf.TSDFConfig(capacity=1024)
@@ -121,6 +123,7 @@ def test_the_geometry_layer_is_de_integrated_too():
                              atol=1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["bayes", "sum_labels", "glfs"])
 def test_reintegrate_equals_fusing_at_the_new_poses(name):
   rule = INVERTIBLE[name]()
@@ -184,6 +187,7 @@ def test_the_mapper_keeps_a_bounded_number_of_frames():
     jf.Mapper(jf.rules.bayes(), num_classes=K).unfuse(0)
 
 
+@pytest.mark.slow
 def test_what_cannot_be_inverted_gets_one_line():
   frames = [_frame(s) for s in range(2)]
   stack = jax.tree.map(lambda *x: np.stack(x), *frames)

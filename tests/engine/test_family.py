@@ -157,6 +157,7 @@ def test_every_term_at_once_matches_reference(aggregate):
 @hypothesis.settings(max_examples=6, deadline=None)
 @hypothesis.given(seed=st.integers(0, 2**16), present=st.sets(
     st.sampled_from(("table", "moments", "context", "beta", "mix")), min_size=1))
+@pytest.mark.slow
 def test_random_members_match_reference(seed, present):
   rng = np.random.default_rng(seed)
   params, names = {}, ()

@@ -175,6 +175,7 @@ def test_clamping_bounds_the_log_odds():
                              math.log(0.1192 / 0.8808), rtol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(jf.rules.PAPER_RULES))
 def test_a_moved_object_leaves_no_ghost_and_restarts(name):
   """With every rule: the wall at 2 m (class 0) is seen through until free, then a class-2 wall

@@ -144,6 +144,7 @@ def test_grad_wrt_probabilities_is_finite_with_one_hot_and_zero_variance():
   assert bool(jnp.all(jnp.isfinite(gp))) and bool(jnp.all(jnp.isfinite(gv)))
 
 
+@pytest.mark.slow
 def test_vmap_over_a_parameter_stack_and_no_recompilation():
   frames = frames_of(5, n=2)
   rng = np.random.default_rng(6)

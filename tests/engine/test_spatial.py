@@ -121,6 +121,7 @@ def test_a_map_file_keeps_the_kernel(tmp_path):
   np.testing.assert_array_equal(jf.read_map(loaded)["posterior"], jf.read_map(state)["posterior"])
 
 
+@pytest.mark.slow
 def test_mesh_labels_read_the_smoothed_posterior():
   frames = _frames(4)
   config = jf.tsdf.TSDFConfig(voxel_size=VOXEL / 2, capacity=2**9)
@@ -137,6 +138,7 @@ def test_mesh_labels_read_the_smoothed_posterior():
   assert np.any(jf.label_mesh(mesh, plain).labels[found] != mesh.labels[found])
 
 
+@pytest.mark.slow
 def test_gradient_reaches_the_kernel():
   frames = _frames(5, n=2)
 

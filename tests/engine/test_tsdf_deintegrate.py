@@ -56,6 +56,7 @@ def _assert_same_observed(got, want):
                              atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("weighting", ["constant", "inverse_square"])
 def test_removing_the_middle_frame_equals_never_integrating_it(weighting):
   a, b, c = _frames()

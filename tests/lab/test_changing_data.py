@@ -56,6 +56,7 @@ def _ply_vertices(path) -> int:
               if line.startswith("element vertex"))
 
 
+@pytest.mark.slow
 def test_run_with_free_space_saves_and_shows_the_cleared_map(tmp_path, capsys):
   seq = datasets.load_spec("office:0:moved", num_frames=FRAMES, height=HEIGHT, width=WIDTH)
   _predictions(tmp_path / "pred", seq)

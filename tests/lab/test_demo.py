@@ -58,6 +58,7 @@ def test_runner_end_to_end_and_cache_reuse(tmp_path, checkpoint):
   assert again["table"] == out["table"]
 
 
+@pytest.mark.slow
 def test_cli_help_and_tiny_demo(tmp_path, checkpoint, capsys):
   with pytest.raises(SystemExit) as e:
     cli.main(["--help"])

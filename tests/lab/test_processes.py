@@ -15,6 +15,9 @@ from jaxfusion.lab import cli
 from jaxfusion.lab import processes
 from tests.lab import distributed_worker
 
+# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+pytestmark = pytest.mark.slow
+
 WORKER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "distributed_worker.py")
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -50,6 +50,7 @@ def test_the_analyses_of_pixel_observations_keep_their_names_here():
     assert getattr(study, name) is getattr(observations, name), name
 
 
+@pytest.mark.slow
 def test_oracle_bounds_every_rule_and_recovers_every_outvoted_voxel():
   rng = np.random.default_rng(2)
   seq, gt, keys, valid = plane_scene(rng)

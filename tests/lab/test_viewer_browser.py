@@ -21,6 +21,9 @@ from jaxfusion.lab.viewer import scene_data as sd   # noqa: E402
 from jaxfusion.lab.viewer import server   # noqa: E402
 from tests.lab.test_viewer_server import GEOMETRY, save_floor_maps   # noqa: E402
 
+# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+pytestmark = pytest.mark.slow
+
 WIDTH, HEIGHT = 1280, 800
 COLORS = np.asarray(datasets.CLASS_COLORS, np.int64)
 SHOWN = (0, 2, 4, 6)         # background, chair, plant, TV: the stripes of the floor map

@@ -17,6 +17,9 @@ from jaxfusion import mesh as mesh_lib
 from jaxfusion.lab.viewer import scene_data as sd
 from tests import engine_helpers as h
 
+# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+pytestmark = pytest.mark.slow
+
 NAMES = ("wall", "chair", "table", "plant")
 
 

@@ -113,6 +113,7 @@ def test_large_maps_are_drawn_as_points(maps):
     viewer.stop()
 
 
+@pytest.mark.slow
 def test_view_command_serves_says_what_it_does_and_stops_on_ctrl_c(mesh_maps):
   env = dict(os.environ, PYTHONUNBUFFERED="1")
   # Started with SIGINT ignored, as a background job of a non-interactive shell is (and as

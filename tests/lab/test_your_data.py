@@ -116,6 +116,7 @@ def test_run_takes_every_rule_of_the_study(scannet_set, tmp_path, capsys):
   assert code == 2 and len(lines) == 1 and "fitted for 7 classes, the data has 12" in lines[0]
 
 
+@pytest.mark.slow
 def test_study_on_a_scannet_set(scannet_set, tmp_path, capsys):
   out_dir = tmp_path / "study"
   code, out, _ = _main(["study", "--data", f"scannet:{scannet_set}/scene00*", "--predictions",

@@ -57,6 +57,7 @@ def item(tree, *index):
   return jax.tree.map(lambda x: x[index], tree)
 
 
+@pytest.mark.slow
 def test_ragged_batch_equals_sequential():
   rng = np.random.default_rng(0)
   seqs = [sequence(rng, 3), sequence(rng, 1, height=5, width=7), sequence(rng, 2)]
@@ -180,6 +181,7 @@ _SHARDED_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_sharded_over_four_devices_equals_one_device():
   env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
              JAX_PLATFORMS="cpu")

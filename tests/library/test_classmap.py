@@ -427,6 +427,7 @@ def test_run_with_a_json_class_map_fuses_and_scores_the_remapped_map(tmp_path, c
   assert meta["extra"]["class_map"] == str(path)
 
 
+@pytest.mark.slow
 def test_run_with_a_csv_class_map_and_the_errors(tmp_path, capsys):
   _write_predictions(tmp_path / "preds", samples=False)
   path = tmp_path / "map.csv"
@@ -450,6 +451,7 @@ def test_run_with_a_csv_class_map_and_the_errors(tmp_path, capsys):
   assert "no such file" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_run_remaps_the_networks_samples(tmp_path, capsys):
   from jaxfusion.lab import cli  # pylint: disable=import-outside-toplevel
   coarse = {"background": "background", "chair": "furniture", "table": "furniture",

@@ -378,6 +378,7 @@ def _python_block(text, heading):
   return text[start:text.index("```", start)]
 
 
+@pytest.mark.slow
 def test_the_information_gain_example_runs_on_the_readme_quick_start_map(tmp_path,
                                                                            monkeypatch):
   monkeypatch.chdir(tmp_path)   # the quick start writes its mesh to the working folder

@@ -55,6 +55,7 @@ def _check_prediction(pred, *, with_var):
     assert pred.var is None
 
 
+@pytest.mark.slow
 def test_mc_dropout_source_feeds_robust_fusion(tiny, image):
   graphdef, params = tiny
   source = sampling.mc_dropout_source(graphdef, params, num_samples=M)

@@ -167,6 +167,7 @@ def test_constrain_round_trip_and_tuner_errors(data):
     tune.sweep_beta(frames, CAM, coords[:, :2], labels, betas=[0.3], capacity=CAPACITY)
 
 
+@pytest.mark.slow
 def test_commands_run(data, tmp_path, monkeypatch):
   """The sweep and tune-beta commands end to end, on the small scene instead of the rendered
   synthetic world (which `load_calibration_sequence` renders at the sizes given)."""
@@ -285,6 +286,7 @@ def test_objective_selection_and_per_class_tuning(two):
     tune.tune_hparams(*args, init={"beta": [0.3] * 3}, **kw)
 
 
+@pytest.mark.slow
 def test_evaluate_rules_mixes_scalar_and_per_class_rules_exactly(two):
   rules = [jf.rules.robust(beta=0.3), jf.rules.robust(beta=[0.1, 0.9, 0.3, 0.5]),
            jf.rules.robust(beta=0.7)]
@@ -300,6 +302,7 @@ def test_evaluate_rules_mixes_scalar_and_per_class_rules_exactly(two):
           float(soft_iou_loss(state, coords, labels)), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_protocol_and_comparison_commands(two, tmp_path, monkeypatch):
   """tune-protocol and tune-compare end to end (the same two scenes stand in for both splits,
   to reuse compiled shapes): intervals, paired differences, per-class β and the PNGs."""

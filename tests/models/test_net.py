@@ -216,6 +216,7 @@ def _conv_batches(jaxpr) -> list:
   return sizes
 
 
+@pytest.mark.slow
 def test_mc_samples_share_the_layers_before_the_first_dropout(input_norm=True):
   # The stem and the first block run once per image (batch 1), every later convolution once per
   # sample (batch M), and the samples are those of M independent full passes with the same keys.
@@ -252,6 +253,7 @@ def test_mc_samples_share_the_layers_before_the_first_dropout(input_norm=True):
   assert batches[shared:] and all(b == m for b in batches[shared:]), batches
 
 
+@pytest.mark.slow
 def test_apply_is_from_shared_after_shared():
   graphdef, params = net.init(net.tiny_config(), key=jax.random.key(2))
   x = jnp.asarray(np.random.default_rng(3).random((2, 12, 20, 3)), jnp.float32)

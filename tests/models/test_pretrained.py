@@ -56,6 +56,7 @@ def test_deterministic_pass_runs_at_another_resolution(model):
   assert probs.shape == (40, 56, len(classes.CLASS_NAMES))
 
 
+@pytest.mark.slow
 def test_figure_command_writes_a_png(tmp_path):
   from models import figure
   # Same batch shape and M as the test above, so the sampler is not compiled again.

@@ -179,6 +179,7 @@ def test_region_texture_only_darkens_and_changes_some_pixels():
   assert 0.05 < changed.mean() < 1.0  # patterns have dark and untouched parts
 
 
+@pytest.mark.slow
 def test_augment_with_region_randomisation_keeps_labels_and_range():
   images, labels = _toy_data(n=4, size=16)
   x = jnp.asarray(images, jnp.float32) / 255.0
