@@ -8,6 +8,7 @@ engine never imports it.
     mean, var = jaxfusion.mc_moments(samples)           # (H, W, K) each
     source = jaxfusion_models.mc_dropout_source(model.graphdef, model.params, num_samples=32)
     rule = jaxfusion_models.load_learned_rule()          # the learned fusion rule, fitted on it
+    best = jaxfusion_models.load_family_rule()           # the rule family's fit (spatial term)
 
 Commands: `python -m models.train`, `python -m models.evaluate`, `python -m models.figure`.
 """
@@ -18,10 +19,13 @@ from .checkpoint import PRETRAINED_PATH
 from .checkpoint import load
 from .checkpoint import load_pretrained
 from .checkpoint import save
+from .learned_rule import FAMILY_RULE_PATH
+from .learned_rule import FAMILY_RULE_RECORD
 from .learned_rule import GLFS_PATH
 from .learned_rule import GLFS_RECORD
 from .learned_rule import LEARNED_RULE_PATH
 from .learned_rule import LEARNED_RULE_RECORD
+from .learned_rule import load_family_rule
 from .learned_rule import load_glfs
 from .learned_rule import load_learned_rule
 from .net import DEFAULT_CLASS_NAMES
@@ -43,8 +47,9 @@ from .sampling import prepare_images
 from .sampling import stochastic_apply_fn
 
 __all__ = sorted([
-    "CheckpointError", "DEFAULT_CLASS_NAMES", "GLFS_PATH", "GLFS_RECORD", "LEARNED_RULE_PATH",
-    "LEARNED_RULE_RECORD", "load_glfs",
+    "CheckpointError", "DEFAULT_CLASS_NAMES", "FAMILY_RULE_PATH", "FAMILY_RULE_RECORD",
+    "GLFS_PATH", "GLFS_RECORD", "LEARNED_RULE_PATH",
+    "LEARNED_RULE_RECORD", "load_family_rule", "load_glfs",
     "LoadedModel", "PRETRAINED_PATH", "SegNet",
     "SegNetConfig", "apply", "count_params", "deterministic_apply_fn", "deterministic_probs",
     "deterministic_source", "ensemble_source", "init", "load", "load_learned_rule",

@@ -351,7 +351,8 @@ def run_data_options(args: argparse.Namespace, run):
 
 # --- every rule by one name --------------------------------------------------------------------
 RULE_NAMES_HELP = ("sum_probs, sum_labels, bayes, R, D, D+R, learned (the shipped learned rule), "
-                   "glfs (the shipped GLFS table) or a params.json of `jaxfusion learn-rule`")
+                   "glfs (the shipped GLFS table), family (the rule family's shipped fit) or a "
+                   "params.json of `jaxfusion learn-rule`")
 
 
 def resolve_rule(name: str, *, beta: Optional[float] = None, aggregate: str = "sum",
@@ -359,8 +360,9 @@ def resolve_rule(name: str, *, beta: Optional[float] = None, aggregate: str = "s
   """`(key, FusionRule, reads_moments)` of any rule a command can name.
 
   Args:
-    name: a paper rule (`rules.by_name`), "learned" / "glfs" (the shipped parameters), or the
-      path of a `learn-rule` params.json (either family).
+    name: a paper rule (`rules.by_name`), "learned" / "glfs" / "family" (the shipped
+      parameters: the first learned rule, GLFS, the rule family's fit), or the path of a
+      `learn-rule` params.json (any family).
     beta: β of R and D+R (None: the rule's default).
     aggregate: pixel aggregation.
     num_classes: K of the data, checked against a fitted rule's parameters.
@@ -378,10 +380,11 @@ def resolve_rule(name: str, *, beta: Optional[float] = None, aggregate: str = "s
   from jaxfusion.lab import config as config_lib  # pylint: disable=import-outside-toplevel
   lowered = name.lower()
   source = None
-  if lowered in ("learned", "glfs"):
+  if lowered in ("learned", "glfs", "family"):
     import jaxfusion_models  # pylint: disable=import-outside-toplevel
-    source = str(jaxfusion_models.LEARNED_RULE_PATH if lowered == "learned"
-                 else jaxfusion_models.GLFS_PATH)
+    source = str({"learned": jaxfusion_models.LEARNED_RULE_PATH,
+                  "glfs": jaxfusion_models.GLFS_PATH,
+                  "family": jaxfusion_models.FAMILY_RULE_PATH}[lowered])
   elif name.endswith(".json") or os.path.isfile(name):
     if not os.path.isfile(name):
       raise FileNotFoundError(f"--rule: no such parameter file {name!r}")

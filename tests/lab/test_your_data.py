@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import jaxfusion as jf
+import jaxfusion_models
 from jaxfusion import datasets
 from jaxfusion.datasets import export
 from jaxfusion.lab import cli
@@ -114,6 +115,23 @@ def test_run_takes_every_rule_of_the_study(scannet_set, tmp_path, capsys):
                         "--no-geometry", "--rule", "glfs", "--out", str(tmp_path)], capsys)
   lines = [line for line in err.splitlines() if line.startswith("jaxfusion")]
   assert code == 2 and len(lines) == 1 and "fitted for 7 classes, the data has 12" in lines[0]
+
+
+def test_run_with_the_shipped_family_rule_saves_its_spatial_kernel(scannet_set, tmp_path,
+                                                                   capsys):
+  spec = f"scannet:{scannet_set}/scene0021_00"
+  code, out, _ = _main(["run", "--data", spec, "--predictions",
+                        str(scannet_set / "preds" / "scene0021_00"), "--label-space", "embedded",
+                        "--no-geometry", "--rule", "family", "--out", str(tmp_path)], capsys)
+  assert code == 0 and "mIoU" in out
+  state, rule, _ = jf.io.load_map(str(tmp_path / "scene0021_00_family.npz"))
+  _, params = jf.learn.load_rule(str(jaxfusion_models.FAMILY_RULE_PATH))
+  assert rule.name == "family"
+  np.testing.assert_array_equal(np.asarray(state.spatial), np.asarray(params["spatial"],
+                                                                      np.float32))
+  smoothed = jf.read_map(state)["posterior"]
+  plain = jf.read_map(state.replace(spatial=None))["posterior"]
+  assert np.all(np.isfinite(smoothed)) and not np.allclose(smoothed, plain)
 
 
 @pytest.mark.slow
