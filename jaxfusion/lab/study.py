@@ -418,7 +418,9 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
     `recovered` (method → interval of the share of outvoted-right voxels labelled right, and
     `accuracy_by_category`), `oracle_share` (rule → interval of its mIoU gain over Bayes as a
     share of the oracle's, `stats.headroom_share`), `class_iou` (method → per-class IoU of the
-    confusions summed over all sequences, NaN for a class absent from GT and map), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
+    confusions summed over all sequences, NaN for a class absent from GT and map), `ece` (method
+    → interval of its map ECE) and `ece_differences` ("A − Bayesian" → paired interval of the
+    ECE difference), `alpha` (`median_right`, `median_wrong`, `auroc` interval,
     `right_share` interval of right pixel observations), `num_sequences`.
   """
   methods = config.methods
@@ -467,6 +469,13 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
       res["ece"] = {display(m): _iv(stats.bootstrap(np.stack([r["calibration"][m] for r in seq]),
                                                     metrics.ece_from_bins, **kw))
                     for m in methods if m in seq[0]["calibration"]}
+      if "bayes" in seq[0]["calibration"]:         # each rule's ECE − Bayes's, paired
+        bayes = np.stack([r["calibration"]["bayes"] for r in seq])
+        res["ece_differences"] = {
+            f"{display(m)} − {display('bayes')}": _iv(stats.paired_difference(
+                np.stack([r["calibration"][m] for r in seq]), bayes, metrics.ece_from_bins,
+                **kw))
+            for m in methods if m in seq[0]["calibration"] and m != "bayes"}
     if all("feature_hist" in r for r in seq):
       res["feature_auroc"] = {
           name: _iv(stats.bootstrap(np.stack([r["feature_hist"][name] for r in seq]),
@@ -596,6 +605,14 @@ def format_tables(summary: dict, config: StudyConfig, note: str = "") -> str:
     for m in first["ece"]:
       lines.append(f"| {m} | " + " | ".join(_cell(summary[s]["ece"][m]) for s in shifts) + " |")
     parts.append("\n".join(lines))
+  if "ece_differences" in first:
+    lines = [f"## Paired differences of map ECE (points, {conf} paired-bootstrap intervals; "
+             "below 0: better calibrated than Bayes)", "", head.replace("Method", "Difference"),
+             rule]
+    for d in first["ece_differences"]:
+      lines.append(f"| {d} | " + " | ".join(_cell(summary[s]["ece_differences"][d], signed=True)
+                                            for s in shifts) + " |")
+    parts.append("\n".join(lines))
   if "feature_auroc" in first:
     names = list(first["feature_auroc"])
     lines = [f"## Per-pixel features: AUROC of right vs wrong observations ({conf} bootstrap "
@@ -637,6 +654,8 @@ def _csv(summary: dict) -> str:
     row(s, "front_end", "alpha", "auroc", r["alpha"]["auroc"])
     for m, v in r.get("ece", {}).items():
       row(s, "ece", m, "ece", v)
+    for d, v in r.get("ece_differences", {}).items():
+      row(s, "ece_difference", d, "ece", v)
     for name, v in r.get("feature_auroc", {}).items():
       row(s, "feature_auroc", name, "auroc", v)
     row(s, "front_end", "pixels", "right_share", r["alpha"]["right_share"])

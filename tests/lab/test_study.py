@@ -236,6 +236,17 @@ def test_tiny_study_end_to_end(tmp_path):
   assert shift1["ece"]["Learned"]["estimate"] == pytest.approx(
       float(jf.metrics.ece_from_bins(bins)))
   assert "## Map calibration: ECE" in out["table"]
+  # Each rule's ECE against Bayes's, paired: the estimate is the difference of the two ECEs.
+  assert set(shift1["ece_differences"]) == {f"{m} − Bayesian" for m in shift1["ece"]
+                                            if m != "Bayesian"}
+  bayes_bins = sum(r["calibration"]["bayes"] for r in out["sequences"] if r["shift"] == 1.0)
+  dr_bins = sum(r["calibration"]["robust_dr"] for r in out["sequences"] if r["shift"] == 1.0)
+  dr = shift1["ece_differences"]["D+R − Bayesian"]
+  assert dr["estimate"] == pytest.approx(float(jf.metrics.ece_from_bins(dr_bins))
+                                         - float(jf.metrics.ece_from_bins(bayes_bins)), abs=1e-9)
+  assert all(v["low"] <= v["estimate"] + 1e-12 and v["estimate"] <= v["high"] + 1e-12
+             for v in shift1["ece_differences"].values())
+  assert "## Paired differences of map ECE" in out["table"]
 
 
 def test_cli_study_help_and_bad_input(capsys):
