@@ -49,10 +49,15 @@ def load_learned_rule(*, aggregate: str = "sum") -> rules.FusionRule:
   return rules.learned(learn.load_params(str(LEARNED_RULE_PATH)), aggregate=aggregate)
 
 
+def _load_fitted(path: pathlib.Path, aggregate: str) -> rules.FusionRule:
+  """The rule of a shipped `learn-rule` params.json, of whichever family it names."""
+  family, params = learn.load_rule(str(path))
+  return learn.rule_of(family, params, aggregate=aggregate)
+
+
 def load_glfs(*, aggregate: str = "sum") -> rules.FusionRule:
   """GLFS with the shipped table (`GLFS_PATH`): `rules.glfs(**params, aggregate=aggregate)`."""
-  family, params = learn.load_rule(str(GLFS_PATH))
-  return learn.rule_of(family, params, aggregate=aggregate)
+  return _load_fitted(GLFS_PATH, aggregate)
 
 
 def load_family_rule(*, aggregate: str = "sum") -> rules.FusionRule:
@@ -61,5 +66,4 @@ def load_family_rule(*, aggregate: str = "sum") -> rules.FusionRule:
   A map made for it (`jaxfusion.init_map(..., rule=load_family_rule())`) keeps its spatial
   kernel, so `read_map`, `query` and the mesh labels report the smoothed posterior (§4.1).
   """
-  family, params = learn.load_rule(str(FAMILY_RULE_PATH))
-  return learn.rule_of(family, params, aggregate=aggregate)
+  return _load_fitted(FAMILY_RULE_PATH, aggregate)

@@ -466,16 +466,15 @@ def summarize(per_sequence: list, config: StudyConfig) -> dict:
                     "auroc": _iv(stats.bootstrap(hist, metrics.auroc_from_histograms, **kw)),
                     "right_share": _iv(stats.bootstrap(pix, stats.ratio, **kw))}
     if all("calibration" in r for r in seq):
-      res["ece"] = {display(m): _iv(stats.bootstrap(np.stack([r["calibration"][m] for r in seq]),
-                                                    metrics.ece_from_bins, **kw))
-                    for m in methods if m in seq[0]["calibration"]}
-      if "bayes" in seq[0]["calibration"]:         # each rule's ECE − Bayes's, paired
-        bayes = np.stack([r["calibration"]["bayes"] for r in seq])
+      bins = {m: np.stack([r["calibration"][m] for r in seq])
+              for m in methods if m in seq[0]["calibration"]}
+      res["ece"] = {display(m): _iv(stats.bootstrap(b, metrics.ece_from_bins, **kw))
+                    for m, b in bins.items()}
+      if "bayes" in bins:                              # each rule's ECE − Bayes's, paired
         res["ece_differences"] = {
             f"{display(m)} − {display('bayes')}": _iv(stats.paired_difference(
-                np.stack([r["calibration"][m] for r in seq]), bayes, metrics.ece_from_bins,
-                **kw))
-            for m in methods if m in seq[0]["calibration"] and m != "bayes"}
+                b, bins["bayes"], metrics.ece_from_bins, **kw))
+            for m, b in bins.items() if m != "bayes"}
     if all("feature_hist" in r for r in seq):
       res["feature_auroc"] = {
           name: _iv(stats.bootstrap(np.stack([r["feature_hist"][name] for r in seq]),

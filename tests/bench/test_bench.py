@@ -13,7 +13,7 @@ from bench import numpy_peer
 from bench import scene
 from tests import engine_helpers
 
-# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+# The benchmarks' smoke tests, each a whole bench at a tiny size. The slow tier.
 pytestmark = pytest.mark.slow
 
 

@@ -15,7 +15,7 @@ from jaxfusion.lab import cli
 from jaxfusion.lab import processes
 from tests.lab import distributed_worker
 
-# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+# End-to-end: joined processes of JAX's distributed runtime. The slow tier.
 pytestmark = pytest.mark.slow
 
 WORKER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "distributed_worker.py")

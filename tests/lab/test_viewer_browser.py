@@ -21,7 +21,7 @@ from jaxfusion.lab.viewer import scene_data as sd   # noqa: E402
 from jaxfusion.lab.viewer import server   # noqa: E402
 from tests.lab.test_viewer_server import GEOMETRY, save_floor_maps   # noqa: E402
 
-# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+# End-to-end: a headless browser opens the served page. The slow tier.
 pytestmark = pytest.mark.slow
 
 WIDTH, HEIGHT = 1280, 800

@@ -17,7 +17,7 @@ from jaxfusion import mesh as mesh_lib
 from jaxfusion.lab.viewer import scene_data as sd
 from tests import engine_helpers as h
 
-# End-to-end (a browser, a served page, joined processes, the benchmarks): the slow tier.
+# End-to-end: each test prepares a viewer scene from maps fused by `jaxfusion run`. The slow tier.
 pytestmark = pytest.mark.slow
 
 NAMES = ("wall", "chair", "table", "plant")
