@@ -14,7 +14,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 def _fenced_commands(text: str) -> list:
   """`jaxfusion …` command lines in the shell blocks of a Markdown text (continuations joined,
-  comments dropped, `&&` chains split)."""
+  comments dropped, `&&` chains split, `$NAME` expanded where the block sets `NAME=…`)."""
   commands, block, lang = [], None, None
   for line in text.splitlines():
     if line.startswith("```"):
@@ -22,10 +22,18 @@ def _fenced_commands(text: str) -> list:
         block, lang = [], line[3:].strip()
       else:
         if lang in ("", "bash", "sh"):
+          names = {}
+          expand = lambda s: re.sub(r"\$\{?(\w+)\}?",
+                                    lambda m: names.get(m.group(1), m.group(0)), s)
           for cmd in "\n".join(block).replace("\\\n", " ").splitlines():
+            assignment = re.fullmatch(r"\s*([A-Za-z_]\w*)=(.*)", cmd)
+            if assignment:
+              words = shlex.split(expand(assignment.group(2)))   # `$NAME` unquoted: split again
+              names[assignment.group(1)] = " ".join(w for word in words for w in word.split())
+              continue
             for part in cmd.split("#")[0].split("&&"):
               if part.strip().startswith("jaxfusion "):
-                commands.append(part.strip())
+                commands.append(expand(part.strip()))
         block = None
     elif block is not None:
       block.append(line)
@@ -36,6 +44,8 @@ def test_the_scan_finds_commands():
   text = ("```bash\njaxfusion demo --quick  # x\nls && jaxfusion list\n```\n"
           "```python\njaxfusion x\n```")
   assert _fenced_commands(text) == ["jaxfusion demo --quick", "jaxfusion list"]
+  text = '```bash\nF="--frames 3 \\\n  --seed 1"\njaxfusion run $F --out x  # y\n```'
+  assert _fenced_commands(text) == ["jaxfusion run --frames 3 --seed 1 --out x"]
 
 
 @pytest.mark.parametrize("page", ["README.md"] + sorted(
