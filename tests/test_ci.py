@@ -24,6 +24,9 @@ def test_ci_runs_the_readme_test_command_then_the_slow_tier():
   assert int(budget) == 8 * 60                  # the README's budget: 8 min on 2 cores
   assert int(hard) >= 15 * 60                   # a hard limit far above machine noise
   assert "-m slow" in slow
+  # A worker that dies (a segfault in a compile) fails the tier at once: xdist's replacement
+  # workers otherwise sat idle until CI's 90-minute limit (12-06).
+  assert "--max-worker-restart=0" in main and "--max-worker-restart=0" in slow
 
 
 def test_the_slow_marker_is_registered():

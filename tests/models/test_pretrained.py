@@ -1,6 +1,9 @@
 """The shipped weights: load without training, match the embedded world's classes, segment both
 of its domains far better than chance, and are more uncertain where they are wrong."""
 
+import pathlib
+import tomllib
+
 import jax
 import numpy as np
 import pytest
@@ -43,6 +46,19 @@ def test_shipped_model_segments_both_domains_and_knows_its_errors(model, domain,
   report = evaluate.uncertainty_report(preds["mc_mean"], preds["mc_var"], labels)
   assert report["mean_var_sum_wrong"] > report["mean_var_sum_right"]
   assert report["auroc_var_sum"] > 0.6
+
+
+def test_every_shipped_weight_file_is_package_data():
+  """A non-editable install carries every file under models/weights (the fitted rules and the
+  candidates the docs' commands load included), not only the segmentation net."""
+  root = pathlib.Path(__file__).resolve().parents[2]
+  config = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+  package = root / config["package-dir"]["jaxfusion_models"]
+  covered = {p for g in config["package-data"]["jaxfusion_models"] for p in package.glob(g)
+             if p.is_file()}
+  shipped = {p for p in (package / "weights").rglob("*") if p.is_file()}
+  assert len(shipped) > 10
+  assert sorted(str(p.relative_to(package)) for p in shipped - covered) == []
 
 
 def test_shipped_model_rejects_a_different_class_list():
