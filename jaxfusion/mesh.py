@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxfusion import camera as camera_lib
 from jaxfusion import hashing
 from jaxfusion import mc_tables
 from jaxfusion import tsdf as tsdf_lib
@@ -282,8 +283,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
   normals = np.zeros_like(v)
   if len(f):
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    for k in range(3):
-      np.add.at(normals, f[:, k], cross)
+    # Each face's cross product added to its three corners: one bincount per axis, summing in
+    # the order of the corners listed (corner 0 of every face, then 1, then 2).
+    corners = f.T.reshape(-1)
+    for axis in range(3):
+      normals[:, axis] = np.bincount(corners, weights=np.tile(cross[:, axis], 3),
+                                     minlength=len(v))
   length = np.linalg.norm(normals, axis=-1, keepdims=True)
   return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
 
@@ -383,7 +388,7 @@ def extract_mesh(state, *, min_weight: float = DEFAULT_MIN_WEIGHT,
     if wanted is not None:
       keep &= np.isin(mesh.face_labels, wanted)
     if bounds is not None:
-      c = vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3))
+      c = _centroids(vertices, faces)
       keep &= np.all((c >= bounds[0]) & (c <= bounds[1]), axis=-1)
     mesh = _select_faces(mesh, keep)
   return mesh
@@ -401,8 +406,7 @@ def label_mesh(mesh: Mesh, state, *, fill: bool = True) -> Mesh:
   if not isinstance(state, MapState) or state.keys.ndim != 2:
     raise ValueError("label_mesh needs one MapState (its semantic layer labels the mesh)")
   vertices, faces = mesh.vertices, mesh.faces
-  centroids = vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3), np.float32)
-  points = np.concatenate([vertices, centroids]).astype(np.float32)
+  points = np.concatenate([vertices, _centroids(vertices, faces)]).astype(np.float32)
   labels, confidence, entropy = _read_labels(state, points, fill=fill)
   n = len(vertices)
   return mesh._replace(labels=labels[:n], confidence=confidence[:n], entropy=entropy[:n],
@@ -414,55 +418,123 @@ _VOXEL_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1)
                               for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)], np.int32)
 
 
-def _query_padded(semantic, points: np.ndarray):
-  """`readout.query` of `points (N, 3)` padded to a power of two (so that meshes of every size
-  compile a few query programs, not one each), trimmed back to N (host arrays)."""
-  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
+_voxel_keys_jit = jax.jit(camera_lib.voxel_keys)
+
+
+def _point_keys(semantic, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """`(keys (N, 3) int32, in_range (N,) bool)` of world points in the semantic layer: the
+  engine's own `voxel_keys` (the same float32 arithmetic as `query`), padded to a power of two
+  so that meshes of every size compile a few programs."""
   n = len(points)
   padded = np.zeros((_padded(n), 3), np.float32)
   padded[:n] = points
-  q = readout.query(semantic, padded)
-  return type(q)(*(np.asarray(x)[:n] for x in q))
+  keys, in_range = _voxel_keys_jit(padded, semantic.voxel_size)
+  return np.asarray(keys)[:n], np.asarray(in_range)[:n]
+
+
+def _unique_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """`(unique (U, 3) int32, inverse (M,) int64)` of voxel keys `(M, 3) int32`, so that
+  `unique[inverse] == keys`. Keys of a mesh fill a compact box: a mark per cell of that box
+  finds them in O(M + box) without a sort; a sparse set of keys falls back to `np.unique`."""
+  if len(keys) == 0:
+    return np.zeros((0, 3), np.int32), np.zeros(0, np.int64)
+  lo = keys.min(axis=0).astype(np.int64)
+  span = keys.max(axis=0).astype(np.int64) - lo + 1
+  cells = int(span[0]) * int(span[1]) * int(span[2])
+  if cells >= 2**62:
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    return unique.astype(np.int32), inverse.reshape(-1).astype(np.int64)
+  k = keys.astype(np.int64) - lo
+  linear = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+  if cells <= max(4 * len(keys), 1 << 20):
+    mark = np.zeros(cells, bool)
+    mark[linear] = True
+    cell = np.flatnonzero(mark)
+    index = np.zeros(cells, np.int64)
+    index[cell] = np.arange(len(cell))
+    inverse = index[linear]
+  else:
+    cell, inverse = np.unique(linear, return_inverse=True)
+  x, rest = np.divmod(cell, span[1] * span[2])
+  y, z = np.divmod(rest, span[2])
+  unique = (np.stack([x, y, z], axis=1) + lo).astype(np.int32)
+  return unique, inverse.reshape(-1).astype(np.int64)
+
+
+def _query_keys_padded(semantic, keys: np.ndarray):
+  """`readout.query_keys` of `keys (U, 3) int32` padded to a power of two with at least one
+  padding row (which reads as not found: its posterior is the map's prior), as host arrays of
+  U + 1 rows (the last one the padding row)."""
+  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
+  u = len(keys)
+  padded = np.zeros((_padded(u + 1), 3), np.int32)
+  padded[:u] = keys
+  valid = np.zeros(len(padded), bool)
+  valid[:u] = np.all(np.abs(keys.astype(np.int64)) < camera_lib.KEY_LIMIT, axis=1)
+  q = readout.query_keys(semantic, padded, valid)
+  return type(q)(*(np.asarray(x)[:u + 1] for x in q))
 
 
 def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
   """`(labels (N,) int32, confidence (N,) float32, entropy (N,) float32)` of world points from
   the semantic layer, as §9.2 states (with `fill`, an empty voxel reads its nearest neighbour
-  in the map)."""
-  from jaxfusion import camera as camera_lib   # pylint: disable=import-outside-toplevel
+  in the map).
+
+  What a `query` of every point would give, asked once per distinct semantic voxel: a mesh has
+  several vertices and face centroids in each voxel (about 20 per 10 cm voxel at 2 cm meshing).
+  """
   n = len(points)
   if n == 0:
     return np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32)
-  q = _query_padded(semantic, points)
-  found = np.array(q.found)
-  posterior = np.array(q.posterior)
-  entropy = np.array(q.entropy, np.float32)
-  missing = np.flatnonzero(~found & np.all(np.isfinite(points), axis=1))
+  keys, in_range = _point_keys(semantic, points)
+  inside = np.flatnonzero(in_range)
+  voxels, inverse = _unique_keys(keys[inside])
+  q = _labelled(_query_keys_padded(semantic, voxels))
+  rows = np.full(n, len(voxels), np.int64)          # out of range: the padding row (the prior)
+  rows[inside] = inverse
+  found, labels, confidence, entropy = (x[rows] for x in q)
+  missing = np.flatnonzero(~found & in_range)
   if fill and len(missing):
     size = np.float32(semantic.voxel_size)
-    padded = np.zeros((_padded(len(missing)), 3), np.float32)   # few shapes, as the queries
-    padded[:len(missing)] = points[missing]
-    keys, _ = camera_lib.voxel_keys(padded, semantic.voxel_size)
-    keys = np.asarray(keys, np.int64)[:len(missing)]
-    centres = ((keys[:, None, :] + _VOXEL_NEIGHBOURS[None]).astype(np.float32) + 0.5) * size
-    near = _query_padded(semantic, centres.reshape(-1, 3))
-    near_found = np.asarray(near.found).reshape(len(missing), len(_VOXEL_NEIGHBOURS))
+    holes, hole_of = _unique_keys(keys[missing])
+    around = (holes[:, None, :] + _VOXEL_NEIGHBOURS[None]).reshape(-1, 3)
+    near_voxels, near_of = _unique_keys(around)
+    near = _labelled(_query_keys_padded(semantic, near_voxels))
+    near_rows = near_of.reshape(len(holes), len(_VOXEL_NEIGHBOURS))[hole_of]  # (M, 26)
+    near_found = near[0][near_rows]
     # Vertices often lie exactly between two voxel centres: distances in float64, rounded to
     # a micrometre, so that such ties go to the first neighbour whatever the rounding.
-    exact = (keys[:, None, :] + _VOXEL_NEIGHBOURS[None] + 0.5) * np.float64(size)
+    exact = (keys[missing][:, None, :] + _VOXEL_NEIGHBOURS[None] + 0.5) * np.float64(size)
     distance = np.round(np.linalg.norm(exact - points[missing][:, None, :].astype(np.float64),
                                        axis=-1), 6)
     distance = np.where(near_found, distance, np.inf)
     best = np.argmin(distance, axis=1)                    # the first of equal distances
     ok = np.isfinite(distance[np.arange(len(missing)), best])
-    pick = (np.arange(len(missing)) * len(_VOXEL_NEIGHBOURS) + best)[ok]
-    rows = missing[ok]
-    found[rows] = True
-    posterior[rows] = np.asarray(near.posterior).reshape(-1, posterior.shape[1])[pick]
-    entropy[rows] = np.asarray(near.entropy, np.float32).reshape(-1)[pick]
+    pick = near_rows[np.arange(len(missing)), best][ok]
+    filled = missing[ok]
+    labels[filled] = near[1][pick]
+    confidence[filled] = near[2][pick]
+    entropy[filled] = near[3][pick]
+  return labels, confidence, entropy
+
+
+def _centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+  """`(F, 3)` face centroids, the same numbers as `vertices[faces].mean(axis=1)` (corners
+  summed in order, then divided by 3) without the `(F, 3, 3)` gather."""
+  if len(faces) == 0:
+    return np.zeros((0, 3), vertices.dtype)
+  total = vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]
+  return total / total.dtype.type(3)
+
+
+def _labelled(q) -> tuple:
+  """`(found, labels, confidence, entropy)` per queried voxel (host arrays): the label and its
+  probability where found, −1 and 0 where not (computed per voxel, then gathered per point)."""
+  found = np.asarray(q.found)
+  posterior = np.asarray(q.posterior)
   labels = np.where(found, posterior.argmax(-1), -1).astype(np.int32)
   confidence = np.where(found, posterior.max(-1), 0.0).astype(np.float32)
-  return labels, confidence, entropy
+  return found, labels, confidence, np.asarray(q.entropy, np.float32)
 
 
 def mesh_by_class(state, *, min_weight: float = DEFAULT_MIN_WEIGHT) -> dict:

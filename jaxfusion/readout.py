@@ -113,27 +113,37 @@ def _prior_posterior(state: MapState) -> jax.Array:
   return jnp.where(empty[slot], prior.astype(jnp.float32), uniform)
 
 
-def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
-  """`query`'s pure body, without the input checks (use `query`)."""
-  points = jnp.asarray(points_world, jnp.float32)
-  lead = points.shape[:-1]
-  keys, in_range = camera_lib.voxel_keys(points.reshape(-1, 3), state.voxel_size)
+def query_keys_unchecked(state: MapState, keys: jax.Array, valid: jax.Array) -> QueryResult:
+  """What the map holds at voxel keys `(N, 3) int32` (`valid (N,) bool`: False reads as not
+  found): `query` after the point → key step, for callers that hold keys already (the mesh
+  labels ask once per distinct voxel, not once per vertex). No input checks."""
   slots, found = hashing.lookup(state.keys, keys, max_probes=state.max_probes)
-  found = found & in_range & observed_at(state, slots)
+  found = found & valid & observed_at(state, slots)
   posterior = jax.vmap(state.posterior_fn)(jax.tree.map(lambda r: r[slots], state.rows))
   if state.spatial is not None:       # docs/equations.md §4.1: the voxel's smoothed posterior
     posterior = smooth(state, keys, posterior)
   posterior = jnp.where(found[:, None], posterior, _prior_posterior(state)[None, :])
   hits = jnp.where(found, state.hits[slots], 0)
+  return QueryResult(found=found, posterior=posterior, entropy=numerics.entropy(posterior),
+                     hits=hits)
+
+
+def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
+  """`query`'s pure body, without the input checks (use `query`)."""
+  points = jnp.asarray(points_world, jnp.float32)
+  lead = points.shape[:-1]
+  keys, in_range = camera_lib.voxel_keys(points.reshape(-1, 3), state.voxel_size)
+  q = query_keys_unchecked(state, keys, in_range)
   return QueryResult(
-      found=found.reshape(lead),
-      posterior=posterior.reshape(lead + (state.num_classes,)),
-      entropy=numerics.entropy(posterior).reshape(lead),
-      hits=hits.reshape(lead),
+      found=q.found.reshape(lead),
+      posterior=q.posterior.reshape(lead + (state.num_classes,)),
+      entropy=q.entropy.reshape(lead),
+      hits=q.hits.reshape(lead),
   )
 
 
 _query_jit = jax.jit(query_unchecked)
+query_keys = jax.jit(query_keys_unchecked)
 
 
 def query(state: MapState, points_world: jax.Array) -> QueryResult:

@@ -57,11 +57,11 @@ def test_a_row_runs_on_tiny_frames(frames):
   row = geometry.measure(frames, 0.1, passes=1, mesh_repeats=1, gt_points=gt,
                          semantic_capacity=2**10, peer_memory=False)
   assert row["tsdf_ms"] > 0 and row["semantic_ms"] > 0 and row["both_ms"] > 0
-  assert row["triangles"] > 0 and row["mesh_scratch_mb"] > 0
+  assert row["triangles"] > 0 and row["mesh_scratch_mb"] > 0 and row["extract_mesh_ms"] > 0
   q = row["quality"]
   assert 0 < q["accuracy"] < 10 and 0 <= q["fscore@0.05"] <= 1   # cm; a fraction
   text = geometry.format_rows([row])
-  assert "| 0.10 m |" in text and "jaxfusion" in text
+  assert "| 0.10 m |" in text and "jaxfusion" in text and "`extract_mesh` ms" in text
   if row["open3d"]["status"] == "ok":
     assert "quality" in row["open3d"] and "vertices" not in row["open3d"]
   else:

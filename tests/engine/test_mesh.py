@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import jaxfusion as jf
 from bench import scene
@@ -292,3 +294,33 @@ def test_label_mesh_relabels_one_geometry_for_another_map(room):
     np.testing.assert_array_equal(getattr(relabelled, field), getattr(direct, field), field)
   with pytest.raises(ValueError, match="label_mesh needs one MapState"):
     jf.label_mesh(m, state.geometry)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300), st.integers(0, 2**31 - 1), st.sampled_from([2, 40, 2**29]))
+def test_unique_keys_inverts_and_lists_each_voxel_once(count, seed, spread):
+  """The mesh labels ask once per distinct voxel: `unique[inverse]` gives back every key, each
+  voxel is listed once, for compact sets (the mark per cell) and sparse ones (the sort)."""
+  rng = np.random.default_rng(seed)
+  keys = rng.integers(-spread, spread, size=(count, 3)).astype(np.int32)
+  keys[rng.random(count) < 0.3] = keys[0]                 # repeats
+  unique, inverse = mesh_lib._unique_keys(keys)
+  np.testing.assert_array_equal(unique[inverse], keys)
+  assert len(np.unique(unique, axis=0)) == len(unique) == len(np.unique(keys, axis=0))
+  assert unique.dtype == np.int32
+
+
+def test_labels_are_a_query_of_every_point_bit_for_bit(room):
+  """Asked once per voxel, the labels, confidence and entropy are those of `query` at every
+  vertex and face centroid, out-of-range and non-finite points included (not found)."""
+  _, state, m = room
+  points = np.concatenate([m.vertices, m.vertices[m.faces].mean(axis=1)]).astype(np.float32)
+  points[:3] = [[np.nan, 0, 0], [1e12, 0, 0], [0, -np.inf, 0]]
+  labels, confidence, entropy = mesh_lib._read_labels(state, points, fill=False)
+  q = jf.query(state, points)
+  found = np.asarray(q.found)
+  assert not found[:3].any() and found.mean() > 0.9
+  np.testing.assert_array_equal(labels, np.where(found, np.asarray(q.posterior).argmax(-1), -1))
+  np.testing.assert_array_equal(confidence,
+                                np.where(found, np.asarray(q.posterior).max(-1), 0.0))
+  np.testing.assert_array_equal(entropy, np.asarray(q.entropy))
