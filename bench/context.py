@@ -10,7 +10,8 @@ median of repeats after the warm-up) for one rule, beside its peer in the same r
 - GLFS (depth and incidence) against Bayes, its special case;
 - `context.pixel_context` alone (every feature), against the fusion of one frame by D+R;
 - the rule family (docs/equations.md §3.11) at the structure of its fits (GLFS's table, per-class
-  moment and geometry-context weights; with R and D switched in too), against D+R;
+  moment and geometry-context weights; with R and D switched in too), and its parts (the table
+  alone; the table and the moment weights), against D+R;
 - `read_map` of a family map with the spatial term (§4.1) against `read_map` of the same map
   without it.
 
@@ -54,6 +55,10 @@ def _rules(k: int) -> dict:
       "learned_context": jf.rules.learned(full, context=jf.context.FEATURES),
       "bayes": jf.rules.bayes(),
       "glfs": jf.rules.glfs(num_classes=k),
+      "family_table": jf.rules.family({"table": _family_params(k)["table"]}, context=()),
+      "family_moments": jf.rules.family(
+          {key: v for key, v in _family_params(k).items() if key != "context_weights"},
+          context=()),
       "family": jf.rules.family(_family_params(k), context=FAMILY_CONTEXT),
       "family_rd": jf.rules.family({**_family_params(k), "beta": np.full(k, 0.01, np.float32),
                                     "mix": 0.01}, context=FAMILY_CONTEXT),
@@ -70,6 +75,7 @@ def _family_params(k: int) -> dict:
 
 
 PAIRS = (("learned", "robust_dr"), ("learned_context", "learned"), ("glfs", "bayes"),
+         ("family_table", "robust_dr"), ("family_moments", "robust_dr"),
          ("family", "robust_dr"), ("family_rd", "robust_dr"))
 
 

@@ -107,7 +107,8 @@ def test_context_bench_runs_on_tiny_frames(tmp_path):
   results = context_bench.run(num_frames=2, height=24, width=32, num_classes=5, repeats=1,
                               capacity=2**12)
   assert set(results["rows"]) == {"robust_dr", "learned", "learned_context", "bayes", "glfs",
-                                  "pixel_context", "family", "family_rd", "read_map",
+                                  "pixel_context", "family_table", "family_moments", "family",
+                                  "family_rd", "read_map",
                                   "read_map_spatial"}
   assert all(r["ms_per_frame"] > 0 for r in results["rows"].values())
   assert {(p["rule"], p["peer"]) for p in results["pairs"]} >= set(context_bench.PAIRS)

@@ -141,15 +141,18 @@ def test_rules_without_context_ignore_the_image_and_compute_none(name):
   a, b = _fuse(rule, with_rgb), _fuse(rule, without)
   for x, y in zip(jax.tree.leaves(a.rows), jax.tree.leaves(b.rows)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-  # The traced program reads no context: no window reductions (edge distances, image windows).
-  state = jf.init_map(capacity=256, num_classes=h.NUM_CLASSES, voxel_size=0.25, rule=rule)
-  jaxpr = str(jax.make_jaxpr(jf.fusion.fuse_frame_unchecked)(
-      state, with_rgb[0], h.CAMERA, rule))
-  assert "reduce_window" not in jaxpr
-  with_ctx = jf.rules.learned(context=("depth_edge",))
-  state = jf.init_map(capacity=256, num_classes=h.NUM_CLASSES, voxel_size=0.25, rule=with_ctx)
-  assert "reduce_window" in str(jax.make_jaxpr(jf.fusion.fuse_frame_unchecked)(
-      state, with_rgb[0], h.CAMERA, with_ctx))
+  # The traced program reads no context: no image windows (`reduce_window`), and none of the
+  # 2 × 16 bool ORs of a depth edge's dilations beyond what the rule's own program has.
+  def jaxpr(r):
+    state = jf.init_map(capacity=256, num_classes=h.NUM_CLASSES, voxel_size=0.25, rule=r)
+    return str(jax.make_jaxpr(jf.fusion.fuse_frame_unchecked)(state, with_rgb[0], h.CAMERA, r))
+
+  plain = jaxpr(rule)
+  assert "reduce_window" not in plain
+  assert "reduce_window" in jaxpr(jf.rules.learned(context=("sharpness",)))
+  learned_plain = jaxpr(jf.rules.learned()).count(" or ")
+  assert jaxpr(jf.rules.learned(context=("depth_edge",))).count(" or ") >= learned_plain + 32
+  assert plain.count(" or ") <= learned_plain
 
 
 def _reference_context(frame, names):
