@@ -34,8 +34,8 @@ Measured:
   Open3D's `t.geometry.VoxelBlockGrid` and nvblox's layers, whose layouts are read from their
   source (`PEERS`).
 
-Writes `bench/results/building.json` (`building_quick.json` for `--quick`) and prints a
-Markdown table.
+Writes `bench/results/building.json` and the scale curve `building.png` (`building_quick.*` for
+`--quick`) and prints a Markdown table.
 
     .venv/bin/python -m bench.building            # floor:16, 120×160, 2 cm, to 1.1·10⁷ voxels
     .venv/bin/python -m bench.building --quick    # floor:2, 160 frames (every 2nd), 48×64, 5 cm
@@ -269,6 +269,39 @@ def table(result: dict) -> str:
   return "\n".join(lines)
 
 
+def figure(result: dict, path) -> None:
+  """The scale curve as a PNG: per-frame fuse time (window medians) against the voxels held,
+  growth frames marked, and read-out and meshing time per checkpoint against the map's size."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+  w = result["windows"]
+  left.plot([x["voxels"] for x in w], [x["median_ms"] for x in w], "o-", ms=3,
+            label="fuse, median of a window")
+  voxels_at = {x["frames"][1]: x["voxels"] for x in w}
+  for g in result["growths"]:
+    near = min(voxels_at, key=lambda f: abs(f - g["frame"])) if voxels_at else None
+    if near is not None:
+      left.axvline(voxels_at[near], color="0.8", lw=0.8, zorder=0)
+  left.set(xscale="log", xlabel="voxels held", ylabel="ms per frame",
+           title=f"{result['spec']}, {result['height']}×{result['width']}, "
+                 f"{100 * result['voxel_size']:g} cm (grey: growths)")
+  left.set_ylim(bottom=0)
+  left.legend(loc="lower right")
+  c = result["checkpoints"]
+  vox = [x["voxels"] for x in c]
+  right.plot(vox, [x["read_s"] for x in c], "o-", ms=3, label="read_map (all voxels)")
+  right.plot(vox, [x["query_s"] for x in c], "o-", ms=3, label="query of 2^16 points")
+  right.plot(vox, [x["mesh_s"] for x in c], "o-", ms=3, label="extract_mesh")
+  right.set(xscale="log", yscale="log", xlabel="voxels held", ylabel="s",
+            title="read-out and meshing")
+  right.legend(loc="upper left")
+  fig.tight_layout()
+  fig.savefig(path, dpi=120)
+  plt.close(fig)
+
+
 def main(argv=None) -> None:
   parser = argparse.ArgumentParser(prog="python -m bench.building",
                                    description=__doc__.split("\n")[0])
@@ -304,8 +337,9 @@ def main(argv=None) -> None:
   result["quick"] = bool(args.quick)
   out = pathlib.Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
-  (out / ("building_quick.json" if args.quick else "building.json")).write_text(
-      json.dumps(result, indent=1))
+  name = "building_quick" if args.quick else "building"
+  (out / f"{name}.json").write_text(json.dumps(result, indent=1))
+  figure(result, out / f"{name}.png")
   print(table(result))
 
 

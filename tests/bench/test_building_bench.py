@@ -26,3 +26,5 @@ def test_building_bench_runs_on_a_tiny_floor(tmp_path):
   building.main(["--quick", "--rooms", "1", "--frames", "6", "--height", "24", "--width", "32",
                  "--out", str(tmp_path)])
   assert json.loads((tmp_path / "building_quick.json").read_text())["quick"] is True
+  png = (tmp_path / "building_quick.png").read_bytes()
+  assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
