@@ -32,6 +32,7 @@ import numpy as np
 import jaxfusion as jf
 from bench import open3d_peer
 from bench import scene
+from bench import suite
 from jaxfusion import mesh as mesh_lib
 from jaxfusion import surface_metrics
 from jaxfusion import tsdf
@@ -205,13 +206,8 @@ def measure(frames, voxel_size: float, *, passes: int = 2, mesh_repeats: int = 3
   # What users call: `extract_mesh` of the map with both layers (the last "both" pass), the
   # vertices' and faces' labels read from the 0.1 m semantic layer (docs/equations.md §9.2).
   labelled = state[0]
-  jf.extract_mesh(labelled)                                              # compiles
-  times = []
-  for _ in range(mesh_repeats):
-    t0 = time.perf_counter()
-    jf.extract_mesh(labelled)
-    times.append(time.perf_counter() - t0)
-  row["extract_mesh_ms"] = 1e3 * float(np.median(times))
+  row["extract_mesh_ms"] = 1e3 * suite.median_time(lambda: jf.extract_mesh(labelled),
+                                                   mesh_repeats)
   if gt_points is not None:
     row["quality"] = quality(vertices, faces, gt_points)
 

@@ -462,7 +462,7 @@ def _unique_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _query_keys_padded(semantic, keys: np.ndarray):
-  """`readout.query_keys` of `keys (U, 3) int32` padded to a power of two with at least one
+  """`readout.query_keys_unchecked` (jitted) of `keys (U, 3) int32` padded to a power of two with at least one
   padding row (which reads as not found: its posterior is the map's prior), as host arrays of
   U + 1 rows (the last one the padding row)."""
   from jaxfusion import readout   # pylint: disable=import-outside-toplevel
@@ -471,7 +471,7 @@ def _query_keys_padded(semantic, keys: np.ndarray):
   padded[:u] = keys
   valid = np.zeros(len(padded), bool)
   valid[:u] = np.all(np.abs(keys.astype(np.int64)) < camera_lib.KEY_LIMIT, axis=1)
-  q = readout.query_keys(semantic, padded, valid)
+  q = readout._query_keys_jit(semantic, padded, valid)  # pylint: disable=protected-access
   return type(q)(*(np.asarray(x)[:u + 1] for x in q))
 
 
@@ -499,9 +499,10 @@ def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
     holes, hole_of = _unique_keys(keys[missing])
     around = (holes[:, None, :] + _VOXEL_NEIGHBOURS[None]).reshape(-1, 3)
     near_voxels, near_of = _unique_keys(around)
-    near = _labelled(_query_keys_padded(semantic, near_voxels))
+    near_found, near_labels, near_confidence, near_entropy = _labelled(
+        _query_keys_padded(semantic, near_voxels))
     near_rows = near_of.reshape(len(holes), len(_VOXEL_NEIGHBOURS))[hole_of]  # (M, 26)
-    near_found = near[0][near_rows]
+    near_found = near_found[near_rows]
     # Vertices often lie exactly between two voxel centres: distances in float64, rounded to
     # a micrometre, so that such ties go to the first neighbour whatever the rounding.
     exact = (keys[missing][:, None, :] + _VOXEL_NEIGHBOURS[None] + 0.5) * np.float64(size)
@@ -512,9 +513,9 @@ def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
     ok = np.isfinite(distance[np.arange(len(missing)), best])
     pick = near_rows[np.arange(len(missing)), best][ok]
     filled = missing[ok]
-    labels[filled] = near[1][pick]
-    confidence[filled] = near[2][pick]
-    entropy[filled] = near[3][pick]
+    labels[filled] = near_labels[pick]
+    confidence[filled] = near_confidence[pick]
+    entropy[filled] = near_entropy[pick]
   return labels, confidence, entropy
 
 

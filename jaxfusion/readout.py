@@ -143,7 +143,7 @@ def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
 
 
 _query_jit = jax.jit(query_unchecked)
-query_keys = jax.jit(query_keys_unchecked)
+_query_keys_jit = jax.jit(query_keys_unchecked)   # for the mesh labels (jaxfusion.mesh)
 
 
 def query(state: MapState, points_world: jax.Array) -> QueryResult:
