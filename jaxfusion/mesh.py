@@ -413,6 +413,8 @@ def label_mesh(mesh: Mesh, state, *, fill: bool = True) -> Mesh:
                        face_labels=labels[n:])
 
 
+# Points per round of the fill's nearest-neighbour search (bounds its scratch to ~25 MB).
+_FILL_CHUNK = 2**16
 # The 26 neighbours of a voxel, x-major then y then z (the tie order of §9.2).
 _VOXEL_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1)
                               for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)], np.int32)
@@ -495,28 +497,43 @@ def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
   found, labels, confidence, entropy = (x[rows] for x in q)
   missing = np.flatnonzero(~found & in_range)
   if fill and len(missing):
-    size = np.float32(semantic.voxel_size)
     holes, hole_of = _unique_keys(keys[missing])
     around = (holes[:, None, :] + _VOXEL_NEIGHBOURS[None]).reshape(-1, 3)
     near_voxels, near_of = _unique_keys(around)
     near_found, near_labels, near_confidence, near_entropy = _labelled(
         _query_keys_padded(semantic, near_voxels))
-    near_rows = near_of.reshape(len(holes), len(_VOXEL_NEIGHBOURS))[hole_of]  # (M, 26)
-    near_found = near_found[near_rows]
-    # Vertices often lie exactly between two voxel centres: distances in float64, rounded to
-    # a micrometre, so that such ties go to the first neighbour whatever the rounding.
-    exact = (keys[missing][:, None, :] + _VOXEL_NEIGHBOURS[None] + 0.5) * np.float64(size)
-    distance = np.round(np.linalg.norm(exact - points[missing][:, None, :].astype(np.float64),
-                                       axis=-1), 6)
-    distance = np.where(near_found, distance, np.inf)
-    best = np.argmin(distance, axis=1)                    # the first of equal distances
-    ok = np.isfinite(distance[np.arange(len(missing)), best])
-    pick = near_rows[np.arange(len(missing)), best][ok]
-    filled = missing[ok]
-    labels[filled] = near_labels[pick]
-    confidence[filled] = near_confidence[pick]
-    entropy[filled] = near_entropy[pick]
+    near_of = near_of.reshape(len(holes), len(_VOXEL_NEIGHBOURS))               # (H, 26)
+    # Only points whose empty voxel has a neighbour in the map can be filled.
+    has_near = near_found[near_of].any(axis=1)[hole_of]
+    candidates, hole = missing[has_near], hole_of[has_near]
+    best = np.empty(len(candidates), np.int64)
+    for start in range(0, len(candidates), _FILL_CHUNK):
+      part = slice(start, start + _FILL_CHUNK)
+      best[part] = _nearest_found(keys[candidates[part]], points[candidates[part]],
+                                  near_found[near_of[hole[part]]], semantic.voxel_size)
+    pick = near_of[hole, best]
+    labels[candidates] = near_labels[pick]
+    confidence[candidates] = near_confidence[pick]
+    entropy[candidates] = near_entropy[pick]
   return labels, confidence, entropy
+
+
+def _nearest_found(keys: np.ndarray, points: np.ndarray, near_found: np.ndarray,
+                   voxel_size) -> np.ndarray:
+  """`(M,) int64` which of the 26 neighbours of each point's voxel is nearest to the point
+  among those in the map (`near_found (M, 26) bool`, at least one True per row), the first of
+  equal distances: distances to the neighbours' centres in float64, rounded to a micrometre,
+  so that a point exactly between two centres goes to the first whatever the rounding
+  (§9.2). One axis at a time, `(M, 26)` arrays: no `(M, 26, 3)` temporary."""
+  size = np.float64(np.float32(voxel_size))
+  squared = np.zeros(near_found.shape, np.float64)
+  for axis in range(3):
+    centre = (keys[:, axis, None] + _VOXEL_NEIGHBOURS[None, :, axis] + 0.5) * size
+    delta = centre - points[:, axis, None].astype(np.float64)
+    squared += delta * delta
+  distance = np.round(np.sqrt(squared), 6)
+  distance[~near_found] = np.inf
+  return np.argmin(distance, axis=1)
 
 
 def _centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

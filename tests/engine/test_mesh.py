@@ -324,3 +324,28 @@ def test_labels_are_a_query_of_every_point_bit_for_bit(room):
   np.testing.assert_array_equal(confidence,
                                 np.where(found, np.asarray(q.posterior).max(-1), 0.0))
   np.testing.assert_array_equal(entropy, np.asarray(q.entropy))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 200), st.integers(0, 2**31 - 1), st.sampled_from([0.02, 0.05, 0.1]))
+def test_fill_picks_the_nearest_neighbour_in_the_map(count, seed, voxel_size):
+  """The fill's search (`_nearest_found`, a vectorised pass one axis at a time) picks what the
+  per-point loop of §9.2 picks: the nearest of the neighbours in the map, distances in float64
+  rounded to a micrometre, the first of equal ones — points on voxel faces, edges and corners
+  (exact ties) included."""
+  rng = np.random.default_rng(seed)
+  size = np.float64(np.float32(voxel_size))
+  keys = rng.integers(-50, 50, size=(count, 3)).astype(np.int32)
+  # Offsets within the voxel: random, or on its faces and corners (ties between centres).
+  within = np.where(rng.random((count, 3)) < 0.5, rng.choice([0.0, 0.5, 1.0], (count, 3)),
+                    rng.random((count, 3)))
+  points = ((keys + within) * size).astype(np.float32)
+  near_found = rng.random((count, 26)) < rng.uniform(0.05, 0.9)
+  near_found[np.arange(count), rng.integers(0, 26, count)] = True
+  best = mesh_lib._nearest_found(keys, points, near_found, voxel_size)
+  offsets = mesh_lib._VOXEL_NEIGHBOURS
+  for i in range(count):
+    distances = [round(float(np.linalg.norm((keys[i] + offsets[n] + 0.5) * size
+                                            - points[i].astype(np.float64))), 6)
+                 if near_found[i, n] else np.inf for n in range(26)]
+    assert best[i] == int(np.argmin(distances)), (i, best[i], distances)
