@@ -18,9 +18,14 @@ voxels it reached, whether or not that is 10⁷.
 
 Measured:
 
-* per-frame fuse time (`Mapper.fuse` + `jax.block_until_ready`) as the median over windows of
-  frames, frames that grew a layer and the first frame (a compile) left out, against the
-  voxels (and TSDF blocks) held at the window's end;
+* per-frame fuse time against the voxels held, two ways: the walk's own frames
+  (`Mapper.fuse` + `jax.block_until_ready`) as the median over windows of frames, frames that
+  grew a layer and the first frame (a compile) left out, against the voxels (and TSDF blocks)
+  held at the window's end (but each window also sees other rooms: how many of its pixels
+  hit new voxels changes); and, at every checkpoint once the walk has passed them, the same
+  work at every size: the walk's first `PROBE_FRAMES` frames fused again with `fuse_frame`
+  into a copy of the map (their voxels and blocks are all held: lookups and row updates, no
+  insertion; compiled first, the copy then dropped), their median;
 * each growth: the frame, the layer, old → new capacity and that frame's time;
 * peak process memory (`resource.getrusage(...).ru_maxrss`) and the map arrays' bytes
   (`nbytes` of the semantic table and the block table) at every checkpoint;
@@ -58,6 +63,8 @@ from jaxfusion.datasets.classes import CLASS_NAMES
 
 K = len(CLASS_NAMES)
 NUM_QUERY = 2**16
+# The probe: the walk's first frames, fused again into a copy of the map at each checkpoint.
+PROBE_FRAMES = 20
 CHECKPOINTS = tuple(int(m * 10**e) for e in range(4, 9) for m in (1, 3))
 
 # Per-voxel layouts of the peers, from their source.
@@ -136,6 +143,24 @@ def _timed(fn, repeats: int = 3) -> tuple:
   return float(np.median(seconds)), out
 
 
+def probe(state, frames, camera, rule) -> dict:
+  """`fuse_frame` of the probe frames (frames the map holds already) into a copy of `state`,
+  after a warm-up call on another copy: `{"probe_ms": median, "probe_ms_all": [...]}`. The
+  copies are dropped; `state` is untouched."""
+  copy = lambda: jax.tree_util.tree_map(jnp.copy, state)
+  jax.block_until_ready(jf.fuse_frame(copy(), frames[0], camera, rule).rows)   # compile
+  work, seconds = copy(), []
+  jax.block_until_ready(work.rows)
+  for frame in frames:
+    start = time.perf_counter()
+    work = jf.fuse_frame(work, frame, camera, rule)
+    jax.block_until_ready(work.rows)
+    seconds.append(time.perf_counter() - start)
+  del work
+  return {"probe_ms": 1e3 * float(np.median(seconds)),
+          "probe_ms_all": [1e3 * x for x in seconds]}
+
+
 def checkpoint(state, points, frame: int) -> dict:
   """Read-out, query and meshing times at the map's current size."""
   read_s, voxels = _timed(lambda: jf.read_map(state), repeats=2)
@@ -155,7 +180,8 @@ def checkpoint(state, points, frame: int) -> dict:
 
 def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
         num_frames=None, stride: int = 1, window: int = 50, capacity: int = 2**14,
-        blocks: int = 2**10, stop_at=None, log=None) -> dict:
+        blocks: int = 2**10, stop_at=None, probe_frames: int = PROBE_FRAMES,
+        log=None) -> dict:
   """The walk fused into a growing `Mapper`; returns the JSON record (module docstring)."""
   walk = floor_lib.FloorWalk(floor_lib.make_floor(rooms, seed=seed), num_frames=num_frames,
                              stride=stride, height=height, width=width)
@@ -169,6 +195,7 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
   hi = walk.T_world_cam[:, :3, 3].max(0) + 2.0
   points = jnp.asarray(rng.uniform(lo, hi, (NUM_QUERY, 3)), jnp.float32)
   var = np.full((height, width, K), 0.01, np.float32)
+  probes = []
   frames, checks, growths = [], [], []
   targets = list(CHECKPOINTS)
   render_s = []
@@ -178,6 +205,8 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
     f = walk.frame(t)
     render_s.append(time.perf_counter() - start)
     frame = jf.Frame(f.depth, f.T_world_cam, probabilities(f.labels), var)
+    if t < probe_frames:
+      probes.append(frame)
     n_sem, n_geo = len(mapper.growths), len(mapper.geometry_growths)
     start = time.perf_counter()
     jax.block_until_ready(mapper.fuse(frame, camera).rows)
@@ -193,10 +222,14 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
     if targets and voxels >= targets[0] or last:
       while targets and voxels >= targets[0]:
         targets.pop(0)
-      checks.append(checkpoint(mapper.state, points, t))
+      held = t >= probe_frames - 1       # the probe frames are all in the map
+      checks.append(probe(mapper.state, probes, camera, rule) if held else {"probe_ms": None})
+      checks[-1].update(checkpoint(mapper.state, points, t))
       if log:
         c = checks[-1]
-        log(f"frame {t}: {voxels:,} voxels, {num_blocks:,} blocks; read {c['read_s']:.3f} s, "
+        probed = "—" if c["probe_ms"] is None else f"{c['probe_ms']:.1f}"
+        log(f"frame {t}: {voxels:,} voxels, {num_blocks:,} blocks; probe {probed} "
+            f"ms/frame; read {c['read_s']:.3f} s, "
             f"query {c['query_s']:.3f} s, mesh {c['mesh_s']:.2f} s; {_rss_mb():.0f} MB; "
             f"{time.perf_counter() - start_all:.0f} s so far")
     if last:
@@ -214,7 +247,8 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
       "rule": rule.name, "device": jax.devices()[0].device_kind,
       "first_frame_s": frames[0][1], "render_median_ms": 1e3 * float(np.median(render_s[1:]))
       if len(render_s) > 1 else None,
-      "windows": windows, "growths": growths, "checkpoints": checks,
+      "probe_frames": probe_frames, "windows": windows, "growths": growths,
+      "checkpoints": checks,
       "voxels": int(mapper.state.num_occupied), "dropped": int(mapper.state.num_dropped),
       "blocks": int(mapper.state.geometry.num_blocks),
       "peak_rss_mb": _rss_mb(), "per_voxel": per_voxel(mapper.state), "peers": PEERS,
@@ -239,12 +273,14 @@ def table(result: dict) -> str:
   lines += ["", "| growth at frame | layer | capacity | frame s |", "|---|---|---|---|"]
   lines += [f"| {g['frame']} | {g['layer']} | {g['old']:,} → {g['new']:,} | {g['s']:.2f} |"
             for g in r["growths"]]
-  lines += ["", "| frame | voxels | read_map s (ns/voxel) | query 2^16 pts s | extract_mesh s "
-                "(faces, µs/face) | map MB (sem + TSDF) | peak RSS MB |",
-            "|---|---|---|---|---|---|---|"]
+  lines += ["", "| frame | voxels | probe fuse ms/frame (median) | read_map s (ns/voxel) | "
+                "query 2^16 pts s | extract_mesh s (faces, µs/face) | map MB (sem + TSDF) | "
+                "peak RSS MB |",
+            "|---|---|---|---|---|---|---|---|"]
   for c in r["checkpoints"]:
     mb = c["map_bytes"]
-    lines.append(f"| {c['frame']} | {c['voxels']:,} | {c['read_s']:.3f} "
+    probed = "—" if c["probe_ms"] is None else f"{c['probe_ms']:.1f}"
+    lines.append(f"| {c['frame']} | {c['voxels']:,} | {probed} | {c['read_s']:.3f} "
                  f"({c['read_ns_per_voxel']:.0f}) | {c['query_s']:.4f} | {c['mesh_s']:.3f} "
                  f"({c['mesh_faces']:,}, {c['mesh_us_per_face']:.2f}) | "
                  f"{mb['semantic'] / 2**20:,.0f} + {mb['geometry'] / 2**20:,.0f} | "
@@ -278,7 +314,11 @@ def figure(result: dict, path) -> None:
   fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
   w = result["windows"]
   left.plot([x["voxels"] for x in w], [x["median_ms"] for x in w], "o-", ms=3,
-            label="fuse, median of a window")
+            label="the walk's frames, median of a window")
+  probed = [x for x in result["checkpoints"] if x["probe_ms"] is not None]
+  if probed:
+    left.plot([x["voxels"] for x in probed], [x["probe_ms"] for x in probed], "s-", ms=4,
+              label="the walk's first frames fused again, median")
   voxels_at = {x["frames"][1]: x["voxels"] for x in w}
   for g in result["growths"]:
     near = min(voxels_at, key=lambda f: abs(f - g["frame"])) if voxels_at else None

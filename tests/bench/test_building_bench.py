@@ -11,11 +11,15 @@ from bench import building
 @pytest.mark.slow   # fuse, growth, read-out, query and meshing compiled at a few sizes: ~30–60 s
 def test_building_bench_runs_on_a_tiny_floor(tmp_path):
   result = building.run(rooms=1, seed=0, height=24, width=32, voxel_size=0.1, num_frames=12,
-                        stride=10, window=4, capacity=2**10, blocks=2**6)
+                        stride=10, window=4, capacity=2**10, blocks=2**6, probe_frames=3)
   assert result["frames"] == 12 and result["voxels"] > 0 and result["dropped"] == 0
   assert result["growths"], "a map started this small must grow"
   assert result["windows"] and all(w["median_ms"] > 0 for w in result["windows"])
   last = result["checkpoints"][-1]
+  # The probe (the first 3 frames fused again into a copy) runs once they are held and leaves
+  # the map as it was: the read-out after it returns every voxel the walk put there.
+  assert all((c["probe_ms"] is None) == (c["frame"] < 2) for c in result["checkpoints"])
+  assert last["probe_ms"] > 0 and len(last["probe_ms_all"]) == 3
   assert last["frame"] == 11 and last["read_voxels"] == result["voxels"]
   assert last["mesh_faces"] > 0 and last["query_points"] == building.NUM_QUERY
   assert result["per_voxel"]["semantic_per_slot"] > 0
