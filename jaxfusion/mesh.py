@@ -106,20 +106,24 @@ def _neighbour_slots(state: tsdf_lib.TSDFState, slots):
   return jnp.where((slots < capacity)[:, None], out, capacity)
 
 
-def _block_codes(state: tsdf_lib.TSDFState, neighbours, min_weight):
-  """Each voxel's code on the `(b+1)³` voxel centres of a block and its +x/+y/+z neighbours,
-  `(G, b+1, b+1, b+1) int8` indexed `[z, y, x]`: bit 0 inside (sdf < 0), bit 1 usable
-  (weight ≥ `min_weight`; 0 where a neighbour block is absent).
-
-  The 8 blocks' rows are read whole, coded, and joined by slicing (no per-corner gathers)."""
+def _rank_codes(state: tsdf_lib.TSDFState, slots, min_weight):
+  """`(R + 1, V) int8` each ranked block's voxel codes, bit 0 inside (sdf < 0), bit 1 usable
+  (weight ≥ `min_weight`), and a last all-zero row for an absent block: computed once per
+  block, so that the chunks below read a byte per neighbour voxel, not its sdf and weight."""
   capacity = state.capacity
-  b = state.block_size
-  g = neighbours.shape[0]
-  read = jnp.minimum(neighbours, capacity - 1)
-  usable = (neighbours < capacity)[..., None] & (state.weight[read] >= min_weight)
-  code = (usable.astype(jnp.int8) * 2 + (state.sdf[read] < 0).astype(jnp.int8))
+  read = jnp.minimum(slots, capacity - 1)
+  usable = (slots < capacity)[:, None] & (state.weight[read] >= min_weight)
+  codes = usable.astype(jnp.int8) * 2 + (state.sdf[read] < 0).astype(jnp.int8)
+  return jnp.concatenate([codes, jnp.zeros((1, codes.shape[1]), jnp.int8)])
+
+
+def _block_grid(rows, b: int):
+  """The codes on the `(b+1)³` voxel centres of a block and its +x/+y/+z neighbours,
+  `(G, b+1, b+1, b+1) int8` indexed `[z, y, x]`, from the 8 blocks' code rows `(G, 8, V)` at
+  `_NEIGHBOURS` offsets, joined by slicing (no per-corner gathers)."""
+  g = rows.shape[0]
   # Voxel i + b·(j + b·k) of block n sits at (x, y, z) = (i, j, k): rows reshape to [z, y, x].
-  r = code.reshape(g, 8, b, b, b)
+  r = rows.reshape(g, 8, b, b, b)
   own_x = jnp.concatenate([r[:, 0], r[:, 1, :, :, :1]], axis=3)                # (G, b, b, b+1)
   y_face = jnp.concatenate([r[:, 2, :, :1, :], r[:, 3, :, :1, :1]], axis=3)     # (G, b, 1, b+1)
   slab = jnp.concatenate([own_x, y_face], axis=2)                              # (G, b, b+1, b+1)
@@ -129,23 +133,31 @@ def _block_codes(state: tsdf_lib.TSDFState, neighbours, min_weight):
   return jnp.concatenate([slab, z_face], axis=1)
 
 
-def _cube_corners(grid, b: int):
-  """`(G, V, 8)`: corner c (offset bits (x, y, z) of c) of the cube at each voxel."""
-  g = grid.shape[0]
-  corners = []
-  for x, y, z in _NEIGHBOURS:                     # corner c's offset (x, y, z) = bits of c
-    corners.append(grid[:, z:z + b, y:y + b, x:x + b].reshape(g, b**3))
-  return jnp.stack(corners, axis=-1)
+def _prefix(x):
+  """Inclusive prefix sums along axis 1 (`associative_scan`: on XLA's CPU twice as fast as
+  `jnp.cumsum`, a `reduce_window` over the whole axis)."""
+  return jax.lax.associative_scan(jnp.add, x, axis=1)
+
+
+# Owned-edge bits of a voxel (bit a: its edge along axis a carries a vertex): how many are set,
+# which axis the j-th set bit is, and how many set bits lie below axis a.
+_EDGE_COUNT = np.array([bin(m).count("1") for m in range(8)], np.int32)
+_EDGE_AXIS_OF = np.array([[([a for a in range(3) if m >> a & 1] + [0, 0, 0])[j]
+                           for j in range(3)] for m in range(8)], np.int32)
+_EDGES_BELOW = np.array([[bin(m & ((1 << a) - 1)).count("1") for a in range(3)]
+                         for m in range(8)], np.int32)
 
 
 class _Plan(NamedTuple):
   """Program 1's output, by block rank r (the r-th occupied slot, slot order; R ranks, a power
   of two ≥ the occupied blocks): the slots `(R,) int32` (capacity past the occupied ones), cube
-  cases `(R, V) int32`, inclusive prefix counts within each block of owned-edge vertices
-  `(R, 3V) int32` (voxel-major, then axis) and of triangles `(R, V) int32`, the 8 neighbour
-  blocks' slots and ranks `(R, 8) int32` (capacity / R where absent), and the totals."""
+  cases `(R, V) uint8`, each voxel's owned-edge bits `(R, V) uint8` (bit a: its edge along
+  axis a carries a vertex), inclusive prefix counts within each block of those vertices and of
+  triangles `(R, V) int16` each, the 8 neighbour blocks' slots and ranks `(R, 8) int32`
+  (capacity / R where absent), and the totals."""
   slots: jax.Array
   cases: jax.Array
+  edges: jax.Array
   vertex_cum: jax.Array
   face_cum: jax.Array
   neighbour_slots: jax.Array
@@ -156,7 +168,7 @@ class _Plan(NamedTuple):
 
 @functools.partial(jax.jit, static_argnames=("max_blocks",))
 def _classify(state: tsdf_lib.TSDFState, min_weight, *, max_blocks: int) -> _Plan:
-  """Program 1: every occupied block's cube cases, owned-edge vertex flags and triangle counts
+  """Program 1: every occupied block's cube cases, owned-edge vertex bits and triangle counts
   (chunks of `_MESH_CHUNK` blocks), as prefix counts per block, for the first `max_blocks`
   occupied slots (the host passes at least their number)."""
   capacity, voxels = state.sdf.shape
@@ -168,36 +180,41 @@ def _classify(state: tsdf_lib.TSDFState, min_weight, *, max_blocks: int) -> _Pla
   rank_of_slot = jnp.full(capacity + 1, max_blocks, jnp.int32).at[slots].set(
       jnp.arange(padded, dtype=jnp.int32), mode="drop")
   rank_of_slot = rank_of_slot.at[capacity].set(max_blocks)
-  bits = jnp.asarray(1 << np.arange(8), jnp.int32)
-  num_tris_of = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)
+  codes = _rank_codes(state, slots, min_weight)                       # (padded + 1, V)
+  num_tris_of = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int16)
 
   def body(carry):
-    c, cases, vertex_cum, face_cum, neighbours = carry
+    c, cases, edges, vertex_cum, face_cum, neighbours = carry
     these = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
     nb = _neighbour_slots(state, these)
-    corners = _cube_corners(_block_codes(state, nb, min_weight), b)    # (G, V, 8) int8
-    ok = (corners & 2) != 0
-    inside = (corners & 1) != 0
-    case = jnp.where(jnp.all(ok, axis=-1), jnp.sum(jnp.where(inside, bits, 0), axis=-1), 0)
+    rank = rank_of_slot[jnp.minimum(nb, capacity)]
+    grid = _block_grid(codes[jnp.where(rank < max_blocks, rank, padded)], b)
+    # Corner c of the cube at each voxel (offset bits (x, y, z) of c), `(G, V) int8` each.
+    corner = [grid[:, z:z + b, y:y + b, x:x + b].reshape(chunk, voxels)
+              for x, y, z in _NEIGHBOURS]
+    usable = functools.reduce(jnp.bitwise_and, corner) & 2
+    inside = [(x & 1).astype(jnp.int32) for x in corner]
+    case = jnp.where(usable != 0, sum(inside[k] << k for k in range(8)), 0)
     # Voxel v's own edge along axis a joins corner 0 (itself) and corner 1 << a.
-    flags = jnp.stack([ok[..., 0] & ok[..., k] & (inside[..., 0] != inside[..., k])
-                       for k in (1, 2, 4)], axis=-1)                    # (G, V, 3)
-    v_cum = jnp.cumsum(flags.reshape(chunk, 3 * voxels), axis=1, dtype=jnp.int32)
-    f_cum = jnp.cumsum(num_tris_of[case], axis=1, dtype=jnp.int32)
+    bits = sum(jnp.where(((corner[0] & corner[1 << a] & 2) != 0) & (inside[0] != inside[1 << a]),
+                         1 << a, 0) for a in range(3))
     at = (c * chunk, 0)
-    return (c + 1, jax.lax.dynamic_update_slice(cases, case, at),
-            jax.lax.dynamic_update_slice(vertex_cum, v_cum, at),
-            jax.lax.dynamic_update_slice(face_cum, f_cum, at),
+    return (c + 1, jax.lax.dynamic_update_slice(cases, case.astype(jnp.uint8), at),
+            jax.lax.dynamic_update_slice(edges, bits.astype(jnp.uint8), at),
+            jax.lax.dynamic_update_slice(
+                vertex_cum, _prefix(jnp.asarray(_EDGE_COUNT, jnp.int16)[bits]), at),
+            jax.lax.dynamic_update_slice(face_cum, _prefix(num_tris_of[case]), at),
             jax.lax.dynamic_update_slice(neighbours, nb, at))
 
-  init = (jnp.zeros((), jnp.int32), jnp.zeros((padded, voxels), jnp.int32),
-          jnp.zeros((padded, 3 * voxels), jnp.int32), jnp.zeros((padded, voxels), jnp.int32),
-          jnp.full((padded, 8), capacity, jnp.int32))
-  _, cases, vertex_cum, face_cum, neighbours = jax.lax.while_loop(
+  init = (jnp.zeros((), jnp.int32), jnp.zeros((padded, voxels), jnp.uint8),
+          jnp.zeros((padded, voxels), jnp.uint8), jnp.zeros((padded, voxels), jnp.int16),
+          jnp.zeros((padded, voxels), jnp.int16), jnp.full((padded, 8), capacity, jnp.int32))
+  _, cases, edges, vertex_cum, face_cum, neighbours = jax.lax.while_loop(
       lambda carry: (carry[0] * chunk < num) & (carry[0] * chunk < padded), body, init)
-  return _Plan(slots, cases, vertex_cum, face_cum, neighbours,
+  return _Plan(slots, cases, edges, vertex_cum, face_cum, neighbours,
                rank_of_slot[jnp.minimum(neighbours, capacity)],
-               jnp.sum(vertex_cum[:, -1]), jnp.sum(face_cum[:, -1]))
+               jnp.sum(vertex_cum[:, -1], dtype=jnp.int32),
+               jnp.sum(face_cum[:, -1], dtype=jnp.int32))
 
 
 def _search_rows(cum, rows, target):
@@ -208,7 +225,7 @@ def _search_rows(cum, rows, target):
   hi = jnp.full(rows.shape, length, jnp.int32)
   for _ in range(int(np.ceil(np.log2(max(length, 2)))) + 1):
     mid = (lo + hi) // 2
-    right = cum[rows, jnp.minimum(mid, length - 1)] <= target
+    right = cum[rows, jnp.minimum(mid, length - 1)].astype(jnp.int32) <= target
     active = lo < hi
     lo = jnp.where(active & right, mid + 1, lo)
     hi = jnp.where(active & ~right, mid, hi)
@@ -221,7 +238,7 @@ def _locate(block_cum, within_cum, k):
   `block_cum (R,)`."""
   ranks = block_cum.shape[0]
   rank = jnp.minimum(jnp.searchsorted(block_cum, k, side="right"), ranks - 1)
-  before = block_cum[rank] - within_cum[rank, -1]
+  before = block_cum[rank] - within_cum[rank, -1].astype(jnp.int32)
   position = _search_rows(within_cum, rank, k - before)
   return rank.astype(jnp.int32), jnp.minimum(position, within_cum.shape[1] - 1), before
 
@@ -236,14 +253,18 @@ def _emit(state: tsdf_lib.TSDFState, plan: _Plan, *, max_vertices: int, max_face
   ranks = plan.cases.shape[0]
   offsets = jnp.asarray(tsdf_lib.voxel_offsets(b))
   neighbour_of, index_of = (jnp.asarray(t) for t in _corner_tables(b))
-  vertex_block_cum = jnp.cumsum(plan.vertex_cum[:, -1], dtype=jnp.int32)
-  face_block_cum = jnp.cumsum(plan.face_cum[:, -1], dtype=jnp.int32)
-  vertex_start = vertex_block_cum - plan.vertex_cum[:, -1]
+  block_vertices = plan.vertex_cum[:, -1].astype(jnp.int32)
+  vertex_block_cum = jnp.cumsum(block_vertices, dtype=jnp.int32)
+  face_block_cum = jnp.cumsum(plan.face_cum[:, -1].astype(jnp.int32), dtype=jnp.int32)
+  vertex_start = vertex_block_cum - block_vertices
+  edge_count = jnp.asarray(_EDGE_COUNT)
 
-  # Vertex k: the k-th owned edge with a sign change, on the edge from voxel v along axis a.
+  # Vertex k: the j-th owned edge with a sign change of voxel v, along axis a.
   k = jnp.arange(max_vertices, dtype=jnp.int32)
-  rank, e, _ = _locate(vertex_block_cum, plan.vertex_cum, k)
-  v, a = e // 3, e % 3
+  rank, v, before = _locate(vertex_block_cum, plan.vertex_cum, k)
+  bits = plan.edges[rank, v].astype(jnp.int32)
+  j = k - before - (plan.vertex_cum[rank, v].astype(jnp.int32) - edge_count[bits])
+  a = jnp.asarray(_EDGE_AXIS_OF)[bits, jnp.clip(j, 0, 2)]
   corner = jnp.left_shift(1, a)                                       # 1, 2 or 4
   slot = jnp.minimum(plan.slots[rank], capacity - 1)
   other = plan.neighbour_slots[rank, neighbour_of[v, corner]]
@@ -257,8 +278,8 @@ def _emit(state: tsdf_lib.TSDFState, plan: _Plan, *, max_vertices: int, max_face
   f = jnp.arange(max_faces, dtype=jnp.int32)
   rank, v, before = _locate(face_block_cum, plan.face_cum, f)
   ntri = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)
-  case = plan.cases[rank, v]
-  q = f - before - (plan.face_cum[rank, v] - ntri[case])
+  case = plan.cases[rank, v].astype(jnp.int32)
+  q = f - before - (plan.face_cum[rank, v].astype(jnp.int32) - ntri[case])
   edges = jnp.asarray(mc_tables.TRIANGLES, jnp.int32)[case, jnp.clip(q, 0, 4)]   # (F, 3)
   edges = jnp.maximum(edges, 0)
   owner_corner = jnp.asarray(
@@ -268,7 +289,9 @@ def _emit(state: tsdf_lib.TSDFState, plan: _Plan, *, max_vertices: int, max_face
   owner = jnp.minimum(owner, ranks - 1)
   owner_voxel = index_of[v[:, None], owner_corner]
   axis = jnp.asarray(mc_tables.EDGE_AXIS, jnp.int32)[edges]
-  faces = vertex_start[owner] + plan.vertex_cum[owner, owner_voxel * 3 + axis] - 1
+  owner_bits = plan.edges[owner, owner_voxel].astype(jnp.int32)
+  faces = (vertex_start[owner] + plan.vertex_cum[owner, owner_voxel].astype(jnp.int32)
+           - edge_count[owner_bits] + jnp.asarray(_EDGES_BELOW)[owner_bits, axis])
   return verts, faces
 
 
