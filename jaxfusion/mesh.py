@@ -486,18 +486,51 @@ def _unique_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   return unique, inverse.reshape(-1).astype(np.int64)
 
 
-def _query_keys_padded(semantic, keys: np.ndarray):
-  """`readout.query_keys_unchecked` (jitted) of `keys (U, 3) int32` padded to a power of two with at least one
-  padding row (which reads as not found: its posterior is the map's prior), as host arrays of
-  U + 1 rows (the last one the padding row)."""
+def _point_codes(semantic, points: np.ndarray) -> np.ndarray:
+  """`readout.point_codes_unchecked` of world points `(N, 3)` (padded to a power of two, so
+  that meshes of every size compile a few programs): `(N,) int32` the slot of each point's
+  voxel where the map holds it, −1 where it does not, −2 out of range."""
   from jaxfusion import readout   # pylint: disable=import-outside-toplevel
-  u = len(keys)
-  padded = np.zeros((_padded(u + 1), 3), np.int32)
-  padded[:u] = keys
+  n = len(points)
+  padded = np.zeros((_padded(n), 3), np.float32)
+  padded[:n] = points
+  return np.asarray(readout._point_codes_jit(semantic, padded))[:n]  # pylint: disable=protected-access
+
+
+def _key_codes(semantic, keys: np.ndarray) -> np.ndarray:
+  """`readout.key_codes_unchecked` of voxel keys `(N, 3) int32` (padded; keys beyond the
+  engine's range read as out of range)."""
+  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
+  n = len(keys)
+  padded = np.zeros((_padded(n), 3), np.int32)
+  padded[:n] = keys
   valid = np.zeros(len(padded), bool)
-  valid[:u] = np.all(np.abs(keys.astype(np.int64)) < camera_lib.KEY_LIMIT, axis=1)
-  q = readout._query_keys_jit(semantic, padded, valid)  # pylint: disable=protected-access
-  return type(q)(*(np.asarray(x)[:u + 1] for x in q))
+  valid[:n] = np.all(np.abs(keys.astype(np.int64)) < camera_lib.KEY_LIMIT, axis=1)
+  return np.asarray(readout._key_codes_jit(semantic, padded, valid))[:n]  # pylint: disable=protected-access
+
+
+def _unique_slots(slots: np.ndarray, capacity: int) -> tuple[np.ndarray, np.ndarray]:
+  """`(unique (U,) int32, index (C,) int32)` of held slots: the distinct ones in slot order (a
+  mark per slot of the table: O(M + C), no sort) and where each sits in that list
+  (`unique[index[s]] == s` for every s of `slots`)."""
+  mark = np.zeros(capacity, bool)
+  mark[slots] = True
+  unique = np.flatnonzero(mark).astype(np.int32)
+  index = np.zeros(capacity, np.int32)
+  index[unique] = np.arange(len(unique), dtype=np.int32)
+  return unique, index
+
+
+def _slot_labels(semantic, unique: np.ndarray) -> tuple:
+  """`(labels, confidence, entropy)` of the voxels at `unique (U,)` held slots
+  (`readout.slot_labels_unchecked`, padded), as host arrays of U + 1 rows: the last one what a
+  point whose voxel is not held reads (−1, 0, the prior's entropy)."""
+  from jaxfusion import readout   # pylint: disable=import-outside-toplevel
+  u = len(unique)
+  padded = np.full(_padded(u + 1), -1, np.int32)
+  padded[:u] = unique
+  out = readout._slot_labels_jit(semantic, padded)  # pylint: disable=protected-access
+  return tuple(np.asarray(x)[:u + 1] for x in out)
 
 
 def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
@@ -505,39 +538,44 @@ def _read_labels(semantic, points: np.ndarray, *, fill: bool) -> tuple:
   the semantic layer, as §9.2 states (with `fill`, an empty voxel reads its nearest neighbour
   in the map).
 
-  What a `query` of every point would give, asked once per distinct semantic voxel: a mesh has
-  several vertices and face centroids in each voxel (about 20 per 10 cm voxel at 2 cm meshing).
+  What a `query` of every point would give, with the posterior worked out once per distinct
+  voxel held: a mesh has several vertices and face centroids in each voxel (about 20 per 10 cm
+  voxel at 2 cm meshing). Each point's voxel is looked up in the hash (its slot), the distinct
+  slots are found by a mark per slot, and only those are read.
   """
   n = len(points)
   if n == 0:
     return np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32)
-  keys, in_range = _point_keys(semantic, points)
-  inside = np.flatnonzero(in_range)
-  voxels, inverse = _unique_keys(keys[inside])
-  q = _labelled(_query_keys_padded(semantic, voxels))
-  rows = np.full(n, len(voxels), np.int64)          # out of range: the padding row (the prior)
-  rows[inside] = inverse
-  found, labels, confidence, entropy = (x[rows] for x in q)
-  missing = np.flatnonzero(~found & in_range)
+  codes = _point_codes(semantic, points)
+  held = codes >= 0
+  missing = np.flatnonzero(codes == -1)                 # in range, but the voxel is not held
+  wanted = codes[held]
+  near = None
   if fill and len(missing):
-    holes, hole_of = _unique_keys(keys[missing])
+    keys = _point_keys(semantic, points[missing])[0]
+    holes, hole_of = _unique_keys(keys)
     around = (holes[:, None, :] + _VOXEL_NEIGHBOURS[None]).reshape(-1, 3)
-    near_voxels, near_of = _unique_keys(around)
-    near_found, near_labels, near_confidence, near_entropy = _labelled(
-        _query_keys_padded(semantic, near_voxels))
-    near_of = near_of.reshape(len(holes), len(_VOXEL_NEIGHBOURS))               # (H, 26)
+    near = _key_codes(semantic, around).reshape(len(holes), len(_VOXEL_NEIGHBOURS))  # (H, 26)
+    wanted = np.concatenate([wanted, near[near >= 0]])
+  unique, index = _unique_slots(wanted, semantic.capacity)
+  unique_labels, unique_confidence, unique_entropy = _slot_labels(semantic, unique)
+  rows = np.full(n, len(unique), np.int64)       # not held or out of range: the last row
+  rows[held] = index[codes[held]]
+  labels, confidence, entropy = unique_labels[rows], unique_confidence[rows], unique_entropy[rows]
+  if near is not None:
+    near_found = near >= 0
     # Only points whose empty voxel has a neighbour in the map can be filled.
-    has_near = near_found[near_of].any(axis=1)[hole_of]
-    candidates, hole = missing[has_near], hole_of[has_near]
+    has_near = near_found.any(axis=1)[hole_of]
+    candidates, hole, keys = missing[has_near], hole_of[has_near], keys[has_near]
     best = np.empty(len(candidates), np.int64)
     for start in range(0, len(candidates), _FILL_CHUNK):
       part = slice(start, start + _FILL_CHUNK)
-      best[part] = _nearest_found(keys[candidates[part]], points[candidates[part]],
-                                  near_found[near_of[hole[part]]], semantic.voxel_size)
-    pick = near_of[hole, best]
-    labels[candidates] = near_labels[pick]
-    confidence[candidates] = near_confidence[pick]
-    entropy[candidates] = near_entropy[pick]
+      best[part] = _nearest_found(keys[part], points[candidates[part]],
+                                  near_found[hole[part]], semantic.voxel_size)
+    pick = index[near[hole, best]]
+    labels[candidates] = unique_labels[pick]
+    confidence[candidates] = unique_confidence[pick]
+    entropy[candidates] = unique_entropy[pick]
   return labels, confidence, entropy
 
 
@@ -566,16 +604,6 @@ def _centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.zeros((0, 3), vertices.dtype)
   total = vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]
   return total / total.dtype.type(3)
-
-
-def _labelled(q) -> tuple:
-  """`(found, labels, confidence, entropy)` per queried voxel (host arrays): the label and its
-  probability where found, −1 and 0 where not (computed per voxel, then gathered per point)."""
-  found = np.asarray(q.found)
-  posterior = np.asarray(q.posterior)
-  labels = np.where(found, posterior.argmax(-1), -1).astype(np.int32)
-  confidence = np.where(found, posterior.max(-1), 0.0).astype(np.float32)
-  return found, labels, confidence, np.asarray(q.entropy, np.float32)
 
 
 def mesh_by_class(state, *, min_weight: float = DEFAULT_MIN_WEIGHT) -> dict:

@@ -143,7 +143,39 @@ def query_unchecked(state: MapState, points_world: jax.Array) -> QueryResult:
 
 
 _query_jit = jax.jit(query_unchecked)
-_query_keys_jit = jax.jit(query_keys_unchecked)   # for the mesh labels (jaxfusion.mesh)
+
+
+def key_codes_unchecked(state: MapState, keys: jax.Array, valid: jax.Array) -> jax.Array:
+  """`(N,) int32` where the map holds voxel keys `(N, 3) int32`: the slot where `query_keys`
+  finds the key (observed), −1 where it does not, −2 where not `valid` (out of range). For the
+  mesh labels, which ask once per distinct slot (`slot_labels_unchecked`). No input checks."""
+  slots, found = hashing.lookup(state.keys, keys, max_probes=state.max_probes)
+  found = found & valid & observed_at(state, slots)
+  return jnp.where(found, slots, jnp.where(valid, -1, -2)).astype(jnp.int32)
+
+
+def point_codes_unchecked(state: MapState, points_world: jax.Array) -> jax.Array:
+  """`key_codes_unchecked` of world points `(N, 3)`, keyed as `query` keys them."""
+  keys, in_range = camera_lib.voxel_keys(jnp.asarray(points_world, jnp.float32),
+                                         state.voxel_size)
+  return key_codes_unchecked(state, keys, in_range)
+
+
+def slot_labels_unchecked(state: MapState, slots: jax.Array) -> tuple:
+  """`(labels (U,) int32, confidence (U,) float32, entropy (U,) float32)` of the voxels at
+  held slots `(U,) int32` (< 0: not held, read as `query` reads a voxel it does not find: −1,
+  0 and the prior's entropy): what `query` gives at those voxels' keys. No input checks."""
+  held = slots >= 0
+  q = query_keys_unchecked(state, state.keys[jnp.maximum(slots, 0)], held)
+  labels = jnp.where(q.found, jnp.argmax(q.posterior, axis=-1), -1).astype(jnp.int32)
+  confidence = jnp.where(q.found, jnp.max(q.posterior, axis=-1), 0.0).astype(jnp.float32)
+  return labels, confidence, q.entropy.astype(jnp.float32)
+
+
+# For the mesh labels (jaxfusion.mesh), on host-padded arrays.
+_key_codes_jit = jax.jit(key_codes_unchecked)
+_point_codes_jit = jax.jit(point_codes_unchecked)
+_slot_labels_jit = jax.jit(slot_labels_unchecked)
 
 
 def query(state: MapState, points_world: jax.Array) -> QueryResult:

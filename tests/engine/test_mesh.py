@@ -310,6 +310,17 @@ def test_unique_keys_inverts_and_lists_each_voxel_once(count, seed, spread):
   assert unique.dtype == np.int32
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 300), st.integers(0, 2**31 - 1), st.sampled_from([8, 1024, 2**20]))
+def test_unique_slots_lists_each_held_slot_once(count, seed, capacity):
+  """The labels read each held slot once: `_unique_slots` lists the distinct slots in order and
+  `index` maps every slot asked for back to its place in that list."""
+  slots = np.random.default_rng(seed).integers(0, capacity, count).astype(np.int32)
+  unique, index = mesh_lib._unique_slots(slots, capacity)
+  np.testing.assert_array_equal(unique, np.unique(slots))
+  np.testing.assert_array_equal(unique[index[slots]], slots)
+
+
 def test_labels_are_a_query_of_every_point_bit_for_bit(room):
   """Asked once per voxel, the labels, confidence and entropy are those of `query` at every
   vertex and face centroid, out-of-range and non-finite points included (not found)."""
