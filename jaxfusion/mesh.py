@@ -181,7 +181,7 @@ def _classify(state: tsdf_lib.TSDFState, min_weight, *, max_blocks: int) -> _Pla
       jnp.arange(padded, dtype=jnp.int32), mode="drop")
   rank_of_slot = rank_of_slot.at[capacity].set(max_blocks)
   codes = _rank_codes(state, slots, min_weight)                       # (padded + 1, V)
-  num_tris_of = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int16)
+  num_tris_of = jnp.asarray(mc_tables.NUM_TRIANGLES, jnp.int32)
 
   def body(carry):
     c, cases, edges, vertex_cum, face_cum, neighbours = carry
@@ -198,12 +198,14 @@ def _classify(state: tsdf_lib.TSDFState, min_weight, *, max_blocks: int) -> _Pla
     # Voxel v's own edge along axis a joins corner 0 (itself) and corner 1 << a.
     bits = sum(jnp.where(((corner[0] & corner[1 << a] & 2) != 0) & (inside[0] != inside[1 << a]),
                          1 << a, 0) for a in range(3))
+    # Both prefix counts in one scan: vertices in the low 16 bits, triangles in the high ones
+    # (a block has at most 3V = 1536 vertices and 5V = 2560 triangles).
+    both = _prefix(jnp.asarray(_EDGE_COUNT)[bits] + (num_tris_of[case] << 16))
     at = (c * chunk, 0)
     return (c + 1, jax.lax.dynamic_update_slice(cases, case.astype(jnp.uint8), at),
             jax.lax.dynamic_update_slice(edges, bits.astype(jnp.uint8), at),
-            jax.lax.dynamic_update_slice(
-                vertex_cum, _prefix(jnp.asarray(_EDGE_COUNT, jnp.int16)[bits]), at),
-            jax.lax.dynamic_update_slice(face_cum, _prefix(num_tris_of[case]), at),
+            jax.lax.dynamic_update_slice(vertex_cum, (both & 0xFFFF).astype(jnp.int16), at),
+            jax.lax.dynamic_update_slice(face_cum, (both >> 16).astype(jnp.int16), at),
             jax.lax.dynamic_update_slice(neighbours, nb, at))
 
   init = (jnp.zeros((), jnp.int32), jnp.zeros((padded, voxels), jnp.uint8),
@@ -302,17 +304,23 @@ def _padded(n: int) -> int:
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
   """`(P, 3) float32` unit area-weighted vertex normals (zero for unreferenced vertices)."""
   v = np.asarray(vertices, np.float64)
-  f = np.asarray(faces, np.int64)
+  f = np.asarray(faces)
   normals = np.zeros_like(v)
   if len(f):
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    # Edge vectors and their cross product one coordinate at a time (the same float64 numbers
+    # as np.cross of the (F, 3) edges, without their gathers and copies).
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    i0, i1, i2 = f[:, 0], f[:, 1], f[:, 2]
+    ax, ay, az = x[i1] - x[i0], y[i1] - y[i0], z[i1] - z[i0]
+    bx, by, bz = x[i2] - x[i0], y[i2] - y[i0], z[i2] - z[i0]
+    cross = (ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)
     # Each face's cross product added to its three corners: one bincount per axis, summing in
     # the order of the corners listed (corner 0 of every face, then 1, then 2).
     corners = f.T.reshape(-1)
     for axis in range(3):
-      normals[:, axis] = np.bincount(corners, weights=np.tile(cross[:, axis], 3),
+      normals[:, axis] = np.bincount(corners, weights=np.concatenate([cross[axis]] * 3),
                                      minlength=len(v))
-  length = np.linalg.norm(normals, axis=-1, keepdims=True)
+  length = np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
   return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
