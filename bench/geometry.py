@@ -130,8 +130,8 @@ def _meshing_scratch_bytes(layer) -> int:
   total = max(total, stats.temp_size_in_bytes + stats.output_size_in_bytes)
   plan = mesh_lib._classify(layer, weight, max_blocks=max_blocks)
   compiled = mesh_lib._emit.lower(layer, plan,
-                                  max_vertices=mesh_lib._padded(int(plan.num_vertices)),
-                                  max_faces=mesh_lib._padded(int(plan.num_faces))).compile()
+                                  max_vertices=mesh_lib._bucket(int(plan.num_vertices)),
+                                  max_faces=mesh_lib._bucket(int(plan.num_faces))).compile()
   stats = compiled.memory_analysis()
   return max(total, stats.temp_size_in_bytes + stats.output_size_in_bytes)
 

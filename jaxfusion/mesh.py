@@ -298,7 +298,20 @@ def _emit(state: tsdf_lib.TSDFState, plan: _Plan, *, max_vertices: int, max_face
 
 
 def _padded(n: int) -> int:
+  """The power of two ≥ n (≥ 1): padded sizes, so that inputs of every size compile a few
+  programs."""
   return 1 << max(int(n) - 1, 0).bit_length() if n > 0 else 1
+
+
+def _bucket(n: int) -> int:
+  """n rounded up to 8 steps an octave (at most 1/8 above n; powers of two up to 16): the
+  meshing buffers' sizes, whose every entry is computed, so a power of two would waste up to
+  half the work (16,443 faces → 32,768) for one compile per octave."""
+  n = max(int(n), 1)
+  if n <= 16:
+    return _padded(n)
+  step = 1 << (n.bit_length() - 4)
+  return -(-n // step) * step
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -347,7 +360,7 @@ def marching_cubes(geometry: tsdf_lib.TSDFState, *,
   num_v, num_f = int(plan.num_vertices), int(plan.num_faces)
   if num_f == 0:
     return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
-  verts, faces = _emit(geometry, plan, max_vertices=_padded(num_v), max_faces=_padded(num_f))
+  verts, faces = _emit(geometry, plan, max_vertices=_bucket(num_v), max_faces=_bucket(num_f))
   verts, faces = np.asarray(verts)[:num_v], np.asarray(faces)[:num_f]
   # An edge between two observed voxels whose every cube is skipped (a corner below
   # `min_weight`) carries a vertex no face uses: drop those and renumber.

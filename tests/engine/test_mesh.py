@@ -360,3 +360,12 @@ def test_fill_picks_the_nearest_neighbour_in_the_map(count, seed, voxel_size):
                                             - points[i].astype(np.float64))), 6)
                  if near_found[i, n] else np.inf for n in range(26)]
     assert best[i] == int(np.argmin(distances)), (i, best[i], distances)
+
+
+@given(st.integers(0, 2**31))
+def test_mesh_buffers_are_padded_by_at_most_an_eighth(n):
+  """The meshing buffers (`_bucket`) hold every entry asked for, waste at most 1/8 of them
+  past 16, and take few sizes: 8 an octave."""
+  b = mesh_lib._bucket(n)
+  assert b >= max(n, 1) and (b <= 16 or b <= n + n // 8 + 1)
+  assert b % (1 << max(b.bit_length() - 4, 0)) == 0
