@@ -222,7 +222,7 @@ def grown_map(state: MapState, prior, *, capacity: int):
 
   Every slot of the old table is offered to the new one in slot order, the empty ones
   inactive, so the program's shapes depend on the two capacities only (not on how many voxels
-  the map holds): a `Mapper` compiles it before it is needed.
+  the map holds): one compile per pair of sizes, kept by JAX's persistent compilation cache.
 
   Args:
     state: an unbatched map of C slots (not donated).
@@ -273,8 +273,8 @@ def grow_map(state: MapState, capacity: int, *,
   count exactly; only the slots change.
 
   Not jittable (the capacity is an array shape), but one compiled program per old and new
-  capacity (`grown_map`, which `Mapper` compiles ahead of need). Call it between frames (the
-  `Mapper` does, before a frame could push the load factor past its threshold).
+  capacity (`grown_map`). Call it between frames (the `Mapper` does, before a frame could
+  push the load factor past its threshold).
 
   Args:
     state: an unbatched map; it is not donated and stays valid.

@@ -739,7 +739,7 @@ def tsdf_stats(state: TSDFState) -> dict:
 def grown_tsdf(state: TSDFState, *, capacity: int):
   """`grow_tsdf`'s program (jitted, `capacity` static): the layer rehashed into `capacity`
   block slots, every old slot offered in slot order (the empty ones inactive), so its shapes
-  depend on the two capacities only and a `Mapper` compiles it ahead of need.
+  depend on the two capacities only (one compile per pair of sizes).
 
   Returns:
     `(grown, lost)`: the layer, and `() int32` blocks that found no slot (refused if > 0).
@@ -760,7 +760,7 @@ def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
   """The same layer in a larger table: every block keeps its sdf and weight exactly.
 
   Not jittable (the capacity is a shape), but one compiled program per old and new capacity
-  (`grown_tsdf`, which `Mapper` compiles ahead of need); `Mapper` calls it between frames.
+  (`grown_tsdf`); `Mapper` calls it between frames.
 
   Args:
     state: one layer; not donated.
