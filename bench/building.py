@@ -256,6 +256,58 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
   }
 
 
+def table_sizes(*, rooms: int = 16, seed: int = 0, height: int = 120, width: int = 160,
+                voxel_size: float = 0.02, sizes=((2**21, 2**17), (2**25, 2**19)),
+                load: float = 0.3) -> list:
+  """What the probe costs in a table of each size, the map's content aside: the walk's first
+  `PROBE_FRAMES` frames fused (a first pass inserts them, the second is timed) into fresh maps
+  of `(slots, blocks)` in `sizes`, nearly empty and with the semantic table filled to about
+  `load` by voxels far from the floor (x ≥ 10⁶ voxels: they share no slot chain by design, only
+  the table). Returns one row per size and fill."""
+  from jaxfusion import hashing   # pylint: disable=import-outside-toplevel
+  walk = floor_lib.FloorWalk(floor_lib.make_floor(rooms, seed=seed), num_frames=PROBE_FRAMES,
+                             height=height, width=width)
+  var = np.full((height, width, K), 0.01, np.float32)
+  frames = [jf.Frame(f.depth, f.T_world_cam, probabilities(f.labels), var)
+            for f in (walk.frame(t) for t in range(len(walk)))]
+  rule = jf.rules.robust()
+  rows = []
+  for capacity, blocks in sizes:
+    for fill in (0.0, load):
+      state = jf.init_map(capacity=capacity, num_classes=K, voxel_size=voxel_size, rule=rule,
+                          geometry=jf.tsdf.TSDFConfig(voxel_size=voxel_size, capacity=blocks))
+      if fill:
+        rng = np.random.default_rng(0)
+        n = int(fill * capacity)
+        keys = np.unique(np.stack([rng.integers(10**6, 10**6 + 4000, n),
+                                   rng.integers(0, 4000, n), rng.integers(0, 150, n)],
+                                  1).astype(np.int32), axis=0)
+        table, claims = state.keys, state.claims
+        for i in range(0, len(keys), 2**20):
+          part = jnp.asarray(keys[i:i + 2**20])
+          placed = hashing.insert(table, claims, part, jnp.ones(len(part), bool),
+                                  max_probes=state.max_probes)
+          table, claims = placed.table, placed.claims
+        state = state.replace(
+            keys=table, claims=jnp.zeros_like(claims),
+            hits=(table[:, 0] != hashing.EMPTY).astype(jnp.int32),
+            num_occupied=jnp.int32(len(keys)))
+      for frame in frames:
+        state = jf.fuse_frame(state, frame, walk.camera, rule)
+      jax.block_until_ready(state.rows)
+      seconds = []
+      for frame in frames:
+        start = time.perf_counter()
+        state = jf.fuse_frame(state, frame, walk.camera, rule)
+        jax.block_until_ready(state.rows)
+        seconds.append(time.perf_counter() - start)
+      rows.append({"slots": capacity, "blocks": blocks,
+                   "load": int(state.num_occupied) / capacity,
+                   "probe_ms": 1e3 * float(np.median(seconds))})
+      del state
+  return rows
+
+
 def table(result: dict) -> str:
   r = result
   lines = [
@@ -356,8 +408,21 @@ def main(argv=None) -> None:
   parser.add_argument("--stride", type=int, default=None, help="every N-th frame of the walk")
   parser.add_argument("--stop-at", type=float, default=None,
                       help="stop once the map holds this many voxels (1.1e7; 0: never)")
+  parser.add_argument("--table-sizes", action="store_true",
+                      help="only the probe in fresh maps of 2^21 and 2^25 slots, nearly empty "
+                           "and at load 0.3 (writes building_tables.json)")
   parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"))
   args = parser.parse_args(argv)
+  if args.table_sizes:
+    rows = table_sizes(seed=args.seed)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "building_tables.json").write_text(json.dumps(rows, indent=1))
+    print("| semantic slots | TSDF blocks | load | probe ms / frame (median) |\n|---|---|---|---|")
+    for r in rows:
+      print(f"| 2^{r['slots'].bit_length() - 1} | 2^{r['blocks'].bit_length() - 1} | "
+            f"{r['load']:.3f} | {r['probe_ms']:.1f} |")
+    return
   quick = dict(rooms=2, voxel_size=0.05, height=48, width=64, frames=160, stride=2, window=10,
                capacity=2**14, blocks=2**10, stop_at=None)
   # Start at 2^15 slots / 2^11 blocks: with growth factor 4 the tables pass 2^25 and 2^19,

@@ -27,6 +27,11 @@ def test_building_bench_runs_on_a_tiny_floor(tmp_path):
   text = building.table(result)
   assert "| growth at frame |" in text and "nvblox" in text
   json.dumps(result)                        # the record is JSON as written
+  # The table-size check: the probe in a fresh map, nearly empty and filled by far voxels.
+  rows = building.table_sizes(rooms=1, height=24, width=32, voxel_size=0.1,
+                              sizes=((2**15, 2**8),), load=0.3)
+  assert abs(rows[1]["load"] - rows[0]["load"] - 0.3) < 0.02      # the far voxels' share
+  assert all(r["probe_ms"] > 0 for r in rows)
   building.main(["--quick", "--rooms", "1", "--frames", "6", "--height", "24", "--width", "32",
                  "--out", str(tmp_path)])
   assert json.loads((tmp_path / "building_quick.json").read_text())["quick"] is True
