@@ -11,6 +11,7 @@ linear-probing invariant: a stored key sits before the first empty slot of its p
 Shape legend: C slots, N keys.
 """
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -169,3 +170,13 @@ def lookup(table: jax.Array, keys: jax.Array, *, max_probes: int) -> tuple[jax.A
   )
   out = jax.lax.while_loop(cond, body, init)
   return out.slots, out.found
+
+
+@functools.partial(jax.jit, static_argnames=("max_probes",))
+def count_missing(table: jax.Array, keys: jax.Array, is_key: jax.Array, *,
+                  max_probes: int) -> jax.Array:
+  """`() int32`: how many of the keys `(N, 3) int32` where `is_key (N,) bool` the table
+  `(C, 3)` does not hold (jitted: the capacity-dependent half of the `Mapper`'s room checks, a
+  small program per capacity)."""
+  _, found = lookup(table, keys, max_probes=max_probes)
+  return jnp.sum(is_key & ~found, dtype=jnp.int32)

@@ -796,3 +796,27 @@ def new_block_count(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
   _, found = hashing.lookup(state.block_keys, keys[groups.first_pixel],
                             max_probes=state.max_probes)
   return jnp.sum((jnp.arange(keys.shape[0]) < groups.num_groups) & ~found, dtype=jnp.int32)
+
+
+@jax.jit
+def _missing_samples(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
+                     camera: camera_lib.Camera):
+  """`(keys (S·n·T, 3) int32, missing (S·n·T,) bool)`: the block key of every ray sample of a
+  stack of frames and whether the layer lacks it (a lookup per sample, no grouping)."""
+  keys, valid = jax.vmap(band_block_keys, in_axes=(None, 0, 0, None))(
+      state, jnp.asarray(depth, jnp.float32), jnp.asarray(T_world_cam, jnp.float32), camera)
+  keys, valid = keys.reshape(-1, 3), valid.reshape(-1)
+  _, found = hashing.lookup(state.block_keys, keys, max_probes=state.max_probes)
+  return keys, valid & ~found
+
+
+def count_new_blocks(state: TSDFState, depth, T_world_cam, camera: camera_lib.Camera) -> int:
+  """`new_block_count` on the host side, cheaper for a few frames: every ray sample looked up
+  (one small program), the distinct keys of the missing ones counted by NumPy. A frame samples
+  a few thousand keys, of which few are new; the grouping `new_block_count` runs instead has a
+  fixed cost of its own (a grid fill a round). Not jittable; the same number."""
+  keys, missing = _missing_samples(state, depth, T_world_cam, camera)
+  missing = np.asarray(missing)
+  if not missing.any():
+    return 0
+  return len(np.unique(np.asarray(keys)[missing], axis=0))

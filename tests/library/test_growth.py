@@ -93,6 +93,32 @@ def test_new_voxel_count_is_exact_for_depth_valid_frames():
   assert count == int(after.num_occupied) - before > 0
 
 
+def test_room_checks_are_exact_and_compile_their_heavy_half_once():
+  """`new_voxel_count`, `tsdf.new_block_count` and `tsdf.count_new_blocks` count what fusing
+  the frames adds, at two capacities; the frames' voxel grouping (the heavy program) compiles
+  once for both, only the small lookup (`hashing.count_missing`) per capacity."""
+  rule = jf.rules.bayes()
+  frames = _frames(3)
+  first = jax.tree.map(lambda x: x[:1], frames)
+  rest = jax.tree.map(lambda x: x[1:], frames)
+  voxel_programs = mapper_lib._frame_voxel_groups._cache_size()
+  for capacity, blocks in ((2**15, 2**11), (2**16, 2**12)):
+    config = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=blocks)
+    state = jf.init_map(capacity=capacity, num_classes=K, voxel_size=0.05, rule=rule,
+                        geometry=config)
+    state = jf.fuse_sequence(state, first, CAMERA, rule)
+    voxels = int(mapper_lib.new_voxel_count(state, rest.depth, rest.T_world_cam, CAMERA))
+    new_blocks = int(jf.tsdf.new_block_count(state.geometry, rest.depth, rest.T_world_cam,
+                                             CAMERA))
+    assert jf.tsdf.count_new_blocks(state.geometry, rest.depth, rest.T_world_cam,
+                                    CAMERA) == new_blocks
+    before, before_blocks = int(state.num_occupied), int(state.geometry.num_blocks)
+    after = jf.fuse_sequence(state, rest, CAMERA, rule)
+    assert voxels == int(after.num_occupied) - before > 0
+    assert new_blocks == int(after.geometry.num_blocks) - before_blocks > 0
+  assert mapper_lib._frame_voxel_groups._cache_size() - voxel_programs <= 1
+
+
 @pytest.mark.slow
 def test_mapper_stops_at_max_capacity_and_counts_drops():
   rule = jf.rules.bayes()
@@ -119,3 +145,35 @@ def test_grow_map_and_mapper_validate():
   with pytest.raises(ValueError, match=r"\(T, H, W\)"):
     jf.Mapper(rule, num_classes=K).fuse_sequence(jax.tree.map(lambda x: x[0], _frames(1)),
                                                  CAMERA)
+
+
+def _blocks(layer) -> dict:
+  keys = np.asarray(layer.block_keys)
+  stored = keys[:, 0] != jf.hashing.EMPTY
+  sdf, weight = np.asarray(layer.sdf), np.asarray(layer.weight)
+  return {tuple(k): (s, w) for k, s, w in zip(keys[stored], sdf[stored], weight[stored])}
+
+
+@pytest.mark.slow
+def test_mapper_grows_its_geometry_layer_without_losing_a_block():
+  """A Mapper whose block table starts tiny grows it (the room check's cheap bounds and its
+  exact count) and ends with the layer a large fixed table holds: every block, its sdf and
+  weight, bit for bit, none dropped."""
+  rule = jf.rules.bayes()
+  frames = _frames()
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**15,
+                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**5))
+  for t in range(frames.depth.shape[0]):
+    mapper.fuse(jax.tree.map(lambda x, t=t: x[t], frames), CAMERA)
+  fixed = jf.init_map(capacity=2**15, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**13))
+  fixed = jf.fuse_sequence(fixed, frames, CAMERA, rule)
+  grown = mapper.state.geometry
+  assert len(mapper.geometry_growths) >= 2
+  assert int(grown.num_dropped) == 0 == int(fixed.geometry.num_dropped)
+  assert int(grown.num_blocks) <= 0.5 * grown.capacity
+  a, b = _blocks(grown), _blocks(fixed.geometry)
+  assert a.keys() == b.keys()
+  for key, (sdf, weight) in a.items():
+    np.testing.assert_array_equal(sdf, b[key][0])
+    np.testing.assert_array_equal(weight, b[key][1])
