@@ -93,6 +93,7 @@ def test_new_voxel_count_is_exact_for_depth_valid_frames():
   assert count == int(after.num_occupied) - before > 0
 
 
+@pytest.mark.slow   # compiles fuse_sequence with a geometry layer at two capacities: ~18 s
 def test_room_checks_are_exact_and_compile_their_heavy_half_once():
   """`new_voxel_count`, `tsdf.new_block_count` and `tsdf.count_new_blocks` count what fusing
   the frames adds, at two capacities; the frames' voxel grouping (the heavy program) compiles
