@@ -262,8 +262,8 @@ def table_sizes(*, rooms: int = 16, seed: int = 0, height: int = 120, width: int
   """What the probe costs in a table of each size, the map's content aside: the walk's first
   `PROBE_FRAMES` frames fused (a first pass inserts them, the second is timed) into fresh maps
   of `(slots, blocks)` in `sizes`, nearly empty and with the semantic table filled to about
-  `load` by voxels far from the floor (x ≥ 10⁶ voxels: they share no slot chain by design, only
-  the table). Returns one row per size and fill."""
+  `load` by voxels far from the floor (x ≥ 10⁶ voxels: none is a probe voxel, but they fill
+  the same table and lengthen its probe chains). Returns one row per size and fill."""
   from jaxfusion import hashing   # pylint: disable=import-outside-toplevel
   walk = floor_lib.FloorWalk(floor_lib.make_floor(rooms, seed=seed), num_frames=PROBE_FRAMES,
                              height=height, width=width)

@@ -785,13 +785,19 @@ def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
   return grown
 
 
+def _stack_band_keys(state: TSDFState, depth, T_world_cam, camera: camera_lib.Camera):
+  """`band_block_keys` of a stack of frames `(T, H, W)`, flattened: `(keys (T·S·n, 3) int32,
+  valid (T·S·n,) bool)`, what both room checks below look up."""
+  keys, valid = jax.vmap(band_block_keys, in_axes=(None, 0, 0, None))(
+      state, jnp.asarray(depth, jnp.float32), jnp.asarray(T_world_cam, jnp.float32), camera)
+  return keys.reshape(-1, 3), valid.reshape(-1)
+
+
 @jax.jit
 def new_block_count(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
                     camera: camera_lib.Camera) -> jax.Array:
   """How many blocks not yet stored a stack of frames `(T, H, W)` would add (jittable)."""
-  keys, valid = jax.vmap(band_block_keys, in_axes=(None, 0, 0, None))(
-      state, jnp.asarray(depth, jnp.float32), jnp.asarray(T_world_cam, jnp.float32), camera)
-  keys, valid = keys.reshape(-1, 3), valid.reshape(-1)
+  keys, valid = _stack_band_keys(state, depth, T_world_cam, camera)
   groups = group_pixels(keys, valid)
   _, found = hashing.lookup(state.block_keys, keys[groups.first_pixel],
                             max_probes=state.max_probes)
@@ -803,9 +809,7 @@ def _missing_samples(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
                      camera: camera_lib.Camera):
   """`(keys (S·n·T, 3) int32, missing (S·n·T,) bool)`: the block key of every ray sample of a
   stack of frames and whether the layer lacks it (a lookup per sample, no grouping)."""
-  keys, valid = jax.vmap(band_block_keys, in_axes=(None, 0, 0, None))(
-      state, jnp.asarray(depth, jnp.float32), jnp.asarray(T_world_cam, jnp.float32), camera)
-  keys, valid = keys.reshape(-1, 3), valid.reshape(-1)
+  keys, valid = _stack_band_keys(state, depth, T_world_cam, camera)
   _, found = hashing.lookup(state.block_keys, keys, max_probes=state.max_probes)
   return keys, valid & ~found
 
