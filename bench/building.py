@@ -48,8 +48,10 @@ Writes `bench/results/building.json` and the scale curve `building.png` (`buildi
 
 import argparse
 import json
+import os
 import pathlib
 import resource
+import subprocess
 import sys
 import time
 
@@ -59,6 +61,7 @@ import numpy as np
 
 import jaxfusion as jf
 from jaxfusion.datasets import floor as floor_lib
+from jaxfusion.lab import hugepages
 from jaxfusion.datasets.classes import CLASS_NAMES
 
 K = len(CLASS_NAMES)
@@ -145,12 +148,14 @@ def _timed(fn, repeats: int = 3) -> tuple:
 
 def probe(state, frames, camera, rule) -> dict:
   """`fuse_frame` of the probe frames (frames the map holds already) into a copy of `state`,
-  after a warm-up call on another copy: `{"probe_ms": median, "probe_ms_all": [...]}`. The
-  copies are dropped; `state` is untouched."""
+  after a warm-up call on another copy: `{"probe_ms": median, "probe_ms_all": [...],
+  "probe_huge_bytes": the process's bytes in huge pages meanwhile}`. The copies are dropped;
+  `state` is untouched."""
   copy = lambda: jax.tree_util.tree_map(jnp.copy, state)
   jax.block_until_ready(jf.fuse_frame(copy(), frames[0], camera, rule).rows)   # compile
   work, seconds = copy(), []
   jax.block_until_ready(work.rows)
+  huge = hugepages.anon_huge_bytes()      # the copy's pages (and the map's) as the probe runs
   for frame in frames:
     start = time.perf_counter()
     work = jf.fuse_frame(work, frame, camera, rule)
@@ -158,7 +163,7 @@ def probe(state, frames, camera, rule) -> dict:
     seconds.append(time.perf_counter() - start)
   del work
   return {"probe_ms": 1e3 * float(np.median(seconds)),
-          "probe_ms_all": [1e3 * x for x in seconds]}
+          "probe_ms_all": [1e3 * x for x in seconds], "probe_huge_bytes": huge}
 
 
 def checkpoint(state, points, frame: int) -> dict:
@@ -252,6 +257,7 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
       "voxels": int(mapper.state.num_occupied), "dropped": int(mapper.state.num_dropped),
       "blocks": int(mapper.state.geometry.num_blocks),
       "peak_rss_mb": _rss_mb(), "per_voxel": per_voxel(mapper.state), "peers": PEERS,
+      "huge_pages": hugepages.status(),
       "wall_s": time.perf_counter() - start_all,
   }
 
@@ -305,6 +311,35 @@ def table_sizes(*, rooms: int = 16, seed: int = 0, height: int = 120, width: int
                    "load": int(state.num_occupied) / capacity,
                    "probe_ms": 1e3 * float(np.median(seconds))})
       del state
+  return rows
+
+
+def table_sizes_both(*, seed: int = 0, child_args=()) -> list:
+  """`table_sizes` in two fresh processes, one after the other: with 4 KiB pages only
+  (`JAXFUSION_HUGEPAGES=off`, the glibc tunable removed) and with transparent huge pages
+  (`lab.hugepages`), where this machine offers them. Rows as `table_sizes`', each with
+  `pages` ("4 KiB" or "huge") and the process's `huge_pages` status; `child_args` (the
+  floor's `--rooms`, `--height`, …, and `--table-slots C:B,…`) go to both processes."""
+  plain = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+  tunables = ":".join(t for t in os.environ.get("GLIBC_TUNABLES", "").split(":")
+                      if t and not t.startswith(hugepages.TUNABLE))
+  if tunables:
+    plain["GLIBC_TUNABLES"] = tunables
+  plain["JAXFUSION_HUGEPAGES"] = "off"
+  huge = hugepages.environ_with({**plain, "JAXFUSION_HUGEPAGES": "on"},
+                                mode=hugepages.thp_mode(), glibc=hugepages.glibc_version())
+  rows = []
+  for pages, env in (("4 KiB", plain), ("huge", huge)):
+    if env is None:
+      print("huge pages: not offered here (lab.hugepages); measured with 4 KiB pages only",
+            file=sys.stderr)
+      continue
+    done = subprocess.run([sys.executable, "-m", "bench.building", "--table-sizes-rows",
+                           "--seed", str(seed), *child_args], env=env, check=True,
+                          stdout=subprocess.PIPE, cwd=pathlib.Path(__file__).resolve().parents[1])
+    record = json.loads(done.stdout.decode().strip().splitlines()[-1])
+    rows += [{**row, "pages": pages, "huge_pages": record["huge_pages"]}
+             for row in record["rows"]]
   return rows
 
 
@@ -412,16 +447,28 @@ def main(argv=None) -> None:
                       help="only the probe in fresh maps of 2^21 and 2^25 slots, nearly empty "
                            "and at load 0.3 (writes building_tables.json)")
   parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"))
+  parser.add_argument("--table-sizes-rows", action="store_true", help=argparse.SUPPRESS)
+  parser.add_argument("--table-slots", default=None, help=argparse.SUPPRESS)   # "C:B,C:B"
   args = parser.parse_args(argv)
+  if args.table_sizes_rows:      # one process of --table-sizes: its rows as JSON on stdout
+    given = {name: getattr(args, name) for name in ("rooms", "height", "width", "voxel_size")
+             if getattr(args, name) is not None}
+    if args.table_slots:
+      given["sizes"] = tuple(tuple(int(x) for x in pair.split(":"))
+                             for pair in args.table_slots.split(","))
+    print(json.dumps({"rows": table_sizes(seed=args.seed, **given),
+                      "huge_pages": hugepages.status()}))
+    return
   if args.table_sizes:
-    rows = table_sizes(seed=args.seed)
+    rows = table_sizes_both(seed=args.seed)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "building_tables.json").write_text(json.dumps(rows, indent=1))
-    print("| semantic slots | TSDF blocks | load | probe ms / frame (median) |\n|---|---|---|---|")
+    print("| pages | semantic slots | TSDF blocks | load | probe ms / frame (median) |\n"
+          "|---|---|---|---|---|")
     for r in rows:
-      print(f"| 2^{r['slots'].bit_length() - 1} | 2^{r['blocks'].bit_length() - 1} | "
-            f"{r['load']:.3f} | {r['probe_ms']:.1f} |")
+      print(f"| {r['pages']} | 2^{r['slots'].bit_length() - 1} | "
+            f"2^{r['blocks'].bit_length() - 1} | {r['load']:.3f} | {r['probe_ms']:.1f} |")
     return
   quick = dict(rooms=2, voxel_size=0.05, height=48, width=64, frames=160, stride=2, window=10,
                capacity=2**14, blocks=2**10, stop_at=None)
@@ -449,4 +496,5 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+  hugepages.reexec()       # as the `jaxfusion` commands run: huge pages where Linux has them
   main()

@@ -51,6 +51,15 @@ def _home_slots(keys: jax.Array, capacity: int) -> jax.Array:
   return (hash_keys(keys) & np.uint32(capacity - 1)).astype(jnp.int32)
 
 
+def _probe_slot(home: jax.Array, probe: jax.Array, pending: jax.Array,
+                capacity: int) -> jax.Array:
+  """`(N,) int32`: the slot each pending key looks at in round `probe`, and slot 0 for the
+  others. The probing loops run until the longest chain ends, and every round reads a row for
+  every lane; a lane that is done would read a random row of a table of gigabytes (a cache and
+  TLB miss) only to be masked out. Slot 0 is one row, in cache after the first such read."""
+  return jnp.where(pending, (home + probe) & (capacity - 1), 0)
+
+
 class InsertResult(NamedTuple):
   """Output of `insert`."""
   table: jax.Array    # [C, 3] int32, the table with the new keys placed
@@ -94,7 +103,9 @@ def insert(table: jax.Array, claims: jax.Array, keys: jax.Array, active: jax.Arr
     return (c.probe < max_probes) & jnp.any(c.pending)
 
   def body(c: _InsertCarry) -> _InsertCarry:
-    slot = (home + c.probe) & (capacity - 1)
+    # Lanes already done read slot 0 (one cached row) instead of a random one: a round then
+    # costs a random access per pending key only, not per key (see `_probe_slot`).
+    slot = _probe_slot(home, c.probe, c.pending, capacity)
     stored = c.table[slot]
     match = c.pending & jnp.all(stored == keys, axis=-1)
     empty = c.pending & (stored[:, 0] == EMPTY)
@@ -151,7 +162,7 @@ def lookup(table: jax.Array, keys: jax.Array, *, max_probes: int) -> tuple[jax.A
     return (c.probe < max_probes) & jnp.any(c.pending)
 
   def body(c: _LookupCarry) -> _LookupCarry:
-    slot = (home + c.probe) & (capacity - 1)
+    slot = _probe_slot(home, c.probe, c.pending, capacity)
     stored = table[slot]
     match = c.pending & jnp.all(stored == keys, axis=-1)
     empty = c.pending & (stored[:, 0] == EMPTY)

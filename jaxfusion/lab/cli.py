@@ -29,7 +29,8 @@ Each command module offers `add_parser(subparsers)` and `main(args) -> int`; sha
 in `lab.flags`. Errors a user can fix (a wrong sequence spec, an unreadable folder, an unknown
 rule, a mismatched checkpoint or cache) are printed as one line and exit with status 2, without
 a traceback. Compiled programs are kept between runs in the user's cache folder
-(`lab.compile_cache`; `JAXFUSION_COMPILE_CACHE=off` turns that off).
+(`lab.compile_cache`; `JAXFUSION_COMPILE_CACHE=off` turns that off), and a command asks Linux
+for huge pages for the maps' arrays (`lab.hugepages`; `JAXFUSION_HUGEPAGES=off`).
 """
 
 import argparse
@@ -57,7 +58,12 @@ def main(argv=None) -> int:
 
   A command with `--processes N > 1` is started as N joined local processes
   (`lab.processes.launch`); in each of them, and with `--distributed`, the distributed runtime
-  is joined first (`jaxfusion.distributed.initialize`)."""
+  is joined first (`jaxfusion.distributed.initialize`). Started as a command (`argv` None), the
+  process first re-executes itself once with huge pages for the maps' arrays, where Linux
+  offers them (`lab.hugepages`; `JAXFUSION_HUGEPAGES=off` turns that off)."""
+  if argv is None:
+    from jaxfusion.lab import hugepages   # pylint: disable=import-outside-toplevel
+    hugepages.reexec()
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser().parse_args(argv)
   from jaxfusion.lab import compile_cache   # pylint: disable=import-outside-toplevel

@@ -8,7 +8,8 @@ import pytest
 from bench import building
 
 
-@pytest.mark.slow   # fuse, growth, read-out, query and meshing compiled at a few sizes: ~30–60 s
+@pytest.mark.slow   # fuse, growth, read-out, query and meshing compiled at a few sizes, and
+# two processes of table sizes: ~60–90 s
 def test_building_bench_runs_on_a_tiny_floor(tmp_path):
   result = building.run(rooms=1, seed=0, height=24, width=32, voxel_size=0.1, num_frames=12,
                         stride=10, window=4, capacity=2**10, blocks=2**6, probe_frames=3)
@@ -32,6 +33,15 @@ def test_building_bench_runs_on_a_tiny_floor(tmp_path):
                               sizes=((2**15, 2**8),), load=0.3)
   assert abs(rows[1]["load"] - rows[0]["load"] - 0.3) < 0.02      # the far voxels' share
   assert all(r["probe_ms"] > 0 for r in rows)
+  # --table-sizes runs them in two processes: 4 KiB pages, then huge pages where offered.
+  both = building.table_sizes_both(child_args=["--rooms", "1", "--height", "24", "--width",
+                                               "32", "--voxel-size", "0.1",
+                                               "--table-slots", "32768:256"])
+  assert [r["pages"] for r in both][:2] == ["4 KiB", "4 KiB"] and len(both) in (2, 4)
+  assert not both[0]["huge_pages"]["tunable"]
+  if len(both) == 4:
+    assert both[2]["pages"] == "huge" and both[2]["huge_pages"]["tunable"]
+  assert [r["slots"] for r in both] == [2**15] * len(both)
   building.main(["--quick", "--rooms", "1", "--frames", "6", "--height", "24", "--width", "32",
                  "--out", str(tmp_path)])
   assert json.loads((tmp_path / "building_quick.json").read_text())["quick"] is True
