@@ -25,7 +25,7 @@ Measured:
   hit new voxels changes); and, at every checkpoint once the walk has passed them, the same
   work at every size: the walk's first `PROBE_FRAMES` frames fused again with `fuse_frame`
   into a copy of the map (their voxels and blocks are all held: lookups and row updates, no
-  insertion; compiled first, the copy then dropped), their median;
+  insertion; compiled first, the copy then dropped), `PROBE_PASSES` passes, their median;
 * each growth: the frame, the layer, old → new capacity and that frame's time;
 * peak process memory (`resource.getrusage(...).ru_maxrss`) and the map arrays' bytes
   (`nbytes` of the semantic table and the block table) at every checkpoint;
@@ -68,6 +68,7 @@ K = len(CLASS_NAMES)
 NUM_QUERY = 2**16
 # The probe: the walk's first frames, fused again into a copy of the map at each checkpoint.
 PROBE_FRAMES = 20
+PROBE_PASSES = 3
 CHECKPOINTS = tuple(int(m * 10**e) for e in range(4, 9) for m in (1, 3))
 
 # Per-voxel layouts of the peers, from their source.
@@ -146,21 +147,23 @@ def _timed(fn, repeats: int = 3) -> tuple:
   return float(np.median(seconds)), out
 
 
-def probe(state, frames, camera, rule) -> dict:
+def probe(state, frames, camera, rule, passes: int = PROBE_PASSES) -> dict:
   """`fuse_frame` of the probe frames (frames the map holds already) into a copy of `state`,
-  after a warm-up call on another copy: `{"probe_ms": median, "probe_ms_all": [...],
-  "probe_huge_bytes": the process's bytes in huge pages meanwhile}`. The copies are dropped;
-  `state` is untouched."""
+  `passes` times over (the frames' costs differ by up to 1.5×: one pass's median moved by
+  ±10 % between checkpoints of the same table), after a warm-up call on another copy:
+  `{"probe_ms": median, "probe_ms_all": [...], "probe_huge_bytes": the process's bytes in huge
+  pages meanwhile}`. The copies are dropped; `state` is untouched."""
   copy = lambda: jax.tree_util.tree_map(jnp.copy, state)
   jax.block_until_ready(jf.fuse_frame(copy(), frames[0], camera, rule).rows)   # compile
   work, seconds = copy(), []
   jax.block_until_ready(work.rows)
   huge = hugepages.anon_huge_bytes()      # the copy's pages (and the map's) as the probe runs
-  for frame in frames:
-    start = time.perf_counter()
-    work = jf.fuse_frame(work, frame, camera, rule)
-    jax.block_until_ready(work.rows)
-    seconds.append(time.perf_counter() - start)
+  for _ in range(passes):
+    for frame in frames:
+      start = time.perf_counter()
+      work = jf.fuse_frame(work, frame, camera, rule)
+      jax.block_until_ready(work.rows)
+      seconds.append(time.perf_counter() - start)
   del work
   return {"probe_ms": 1e3 * float(np.median(seconds)),
           "probe_ms_all": [1e3 * x for x in seconds], "probe_huge_bytes": huge}

@@ -20,7 +20,7 @@ def test_building_bench_runs_on_a_tiny_floor(tmp_path):
   # The probe (the first 3 frames fused again into a copy) runs once they are held and leaves
   # the map as it was: the read-out after it returns every voxel the walk put there.
   assert all((c["probe_ms"] is None) == (c["frame"] < 2) for c in result["checkpoints"])
-  assert last["probe_ms"] > 0 and len(last["probe_ms_all"]) == 3
+  assert last["probe_ms"] > 0 and len(last["probe_ms_all"]) == 3 * building.PROBE_PASSES
   assert last["frame"] == 11 and last["read_voxels"] == result["voxels"]
   assert last["mesh_faces"] > 0 and last["query_points"] == building.NUM_QUERY
   assert result["per_voxel"]["semantic_per_slot"] > 0
