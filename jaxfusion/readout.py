@@ -267,6 +267,24 @@ def _check_box(box) -> tuple[np.ndarray, np.ndarray]:
   return lo, hi
 
 
+def coordinate_order(coords: np.ndarray) -> np.ndarray:
+  """`(N,) int64`: the order that sorts distinct voxel coordinates `(N, 3) int32` by x, then y,
+  then z (what `np.lexsort` of the columns gives), by one sort of an int64 code. The code is
+  the coordinates relative to their minimum in mixed radix, which orders them the same way;
+  three stable sorts (`lexsort`) took half of `read_map` at 10⁷ voxels. Coordinates spanning
+  more than 2^63 codes (a box wider than ~2·10⁶ voxels on each axis) fall back to `lexsort`."""
+  coords = np.asarray(coords)
+  if len(coords) == 0:
+    return np.zeros(0, np.int64)
+  low = coords.min(axis=0).astype(np.int64)
+  span = coords.max(axis=0).astype(np.int64) - low + 1
+  if int(span[0]) * int(span[1]) * int(span[2]) >= 2**63:
+    return np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
+  rel = coords.astype(np.int64) - low
+  code = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
+  return np.argsort(code)
+
+
 def read_map(state: MapState, *, classes: Optional[Sequence[int]] = None,
              box: Optional[tuple] = None) -> dict:
   """The occupied voxels of one map as NumPy arrays, sorted by voxel coordinates.
@@ -304,7 +322,7 @@ def read_map(state: MapState, *, classes: Optional[Sequence[int]] = None,
   keys = np.asarray(state.keys)
   occupied = np.nonzero(np.asarray(observed_slots(state)))[0]
   coords = keys[occupied]
-  order = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
+  order = coordinate_order(coords)
   slots = occupied[order]
   coords = coords[order]
   rows = jax.tree.map(lambda r: jnp.asarray(r)[slots], state.rows)

@@ -66,6 +66,7 @@ print(os.environ.get("GLIBC_TUNABLES", ""), hugepages.anon_huge_bytes(), flush=T
 """
 
 
+@pytest.mark.slow   # two fresh processes that import JAX: ~6 s
 @pytest.mark.skipif(hugepages.environ_with({}, mode=hugepages.thp_mode(),
                                            glibc=hugepages.glibc_version()) is None,
                     reason="this machine offers no huge pages through glibc's tunable")

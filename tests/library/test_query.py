@@ -415,3 +415,19 @@ def test_voxel_posteriors_called_plainly_runs_one_compiled_program():
   assert int(occupied.sum()) == int(state.num_occupied) > 0
   with pytest.raises(TypeError, match="MapState"):
     jf.voxel_posteriors(state.rows)
+
+
+@settings(max_examples=100, deadline=None)
+@given(coords=hnp.arrays(np.int32, st.tuples(st.integers(0, 60), st.just(3)),
+                         elements=st.integers(-3, 3) | st.integers(-2**30 + 1, 2**30 - 1)),
+       narrow=st.booleans())
+def test_coordinate_order_is_the_lexsort_of_the_columns(coords, narrow):
+  """read_map's order (one sort of a packed code) against `np.lexsort` by x, then y, then z,
+  on distinct coordinates: clustered ones (the packed code) and ones spread over ±2^30 (the
+  fallback when the code would not fit in 63 bits)."""
+  if narrow:
+    coords = coords % 7 - 3
+  coords = np.unique(coords, axis=0)
+  np.random.default_rng(len(coords)).shuffle(coords)
+  expected = np.lexsort((coords[:, 2], coords[:, 1], coords[:, 0]))
+  np.testing.assert_array_equal(readout.coordinate_order(coords), expected)
