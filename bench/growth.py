@@ -18,6 +18,8 @@ compilation cache on, as the `jaxfusion` commands turn it on (`jaxfusion.lab.com
 a first run fills a fresh cache folder, the second is timed.
 
 Writes `bench/results/growth.json` and prints a Markdown table. `--quick`: 300 frames at 60×80.
+`--compiles`: only what a growth compiles, program by program (`compile_costs`;
+`growth_compiles.json`).
 """
 
 import argparse
@@ -131,6 +133,67 @@ def run_one(num_frames: int, height: int, width: int, factor: int) -> dict:
   }
 
 
+def compile_costs(height: int = 120, width: int = 160, repeats: int = 3) -> list:
+  """What a growth must compile, program by program, at the walk's frame size and its first
+  capacities (2^16 slots, 2^12 blocks; fresh programs each time, medians of `repeats`
+  lower + compile): `fuse_frame` (both layers; the semantic layer alone), the rehashes
+  (`state.grown_map`, `tsdf.grown_tsdf`), the room check's lookup (`hashing.count_missing`),
+  and the smallest per-capacity program a `fuse_frame` split into a capacity-free half and a
+  table half would still compile (a frame's voxel keys found or placed and their rows gathered:
+  `hashing.insert` and a gather). Rows `{"program", "lower_s", "compile_s"}`."""
+  import jax
+  import jax.numpy as jnp
+  import jaxfusion as jf
+  from jaxfusion import fusion, hashing, state as state_lib, tsdf
+  frames, camera = _data(1, height, width)
+  rule = jf.rules.robust()
+  def make(geometry=True):
+    return jf.init_map(capacity=2**16, num_classes=K, voxel_size=0.05, rule=rule,
+                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**12)
+                       if geometry else None)
+  full, plain = make(), make(False)
+  n = height * width
+  keys, active = jnp.zeros((n, 3), jnp.int32), jnp.ones(n, bool)
+
+  def table_half(state, keys, active):
+    placed = hashing.insert(state.keys, state.claims, keys, active, max_probes=state.max_probes)
+    rows = jax.tree.map(lambda r: r[jnp.minimum(placed.slots, state.capacity - 1)], state.rows)
+    return placed.table, placed.claims, rows
+
+  def fresh(fun, **static):
+    # A new function each time, so that nothing traced or compiled before is reused.
+    return lambda: jax.jit(lambda *a, **k: fun(*a, **k), static_argnames=tuple(static))
+
+  programs = (
+      ("fuse_frame, both layers", fresh(fusion.fuse_frame_unchecked),
+       (full, frames[0], camera, rule), {}),
+      ("fuse_frame, semantic layer", fresh(fusion.fuse_frame_unchecked),
+       (plain, frames[0], camera, rule), {}),
+      ("grown_map (semantic rehash)", fresh(state_lib.grown_map.__wrapped__, capacity=0),
+       (plain, state_lib.prior_row(plain, rule)), {"capacity": 2**18}),
+      ("grown_tsdf (block rehash)", fresh(tsdf.grown_tsdf.__wrapped__, capacity=0),
+       (full.geometry,), {"capacity": 2**14}),
+      ("count_missing (room check)", fresh(hashing.count_missing.__wrapped__, max_probes=0),
+       (plain.keys, keys, active), {"max_probes": plain.max_probes}),
+      ("insert + gather (a split fuse_frame's table half)", fresh(table_half),
+       (plain, keys, active), {}),
+  )
+  rows = []
+  for name, make_jit, args, kwargs in programs:
+    lowers, compiles = [], []
+    for _ in range(repeats):
+      jitted = make_jit()        # a new jit object: nothing cached in memory
+      start = time.perf_counter()
+      lowered = jitted.lower(*args, **kwargs)
+      lowers.append(time.perf_counter() - start)
+      start = time.perf_counter()
+      lowered.compile()
+      compiles.append(time.perf_counter() - start)
+    rows.append({"program": name, "lower_s": float(np.median(lowers)),
+                 "compile_s": float(np.median(compiles))})
+  return rows
+
+
 def table(result: dict) -> str:
   first = result["runs"][0]
   lines = [
@@ -157,7 +220,22 @@ def main(argv=None) -> None:
   parser.add_argument("--quick", action="store_true", help="300 frames at 60×80")
   parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"))
   parser.add_argument("--one", nargs=4, type=int, help=argparse.SUPPRESS)   # a child run
+  parser.add_argument("--compiles", action="store_true",
+                      help="only what a growth compiles, program by program "
+                           "(writes growth_compiles.json)")
   args = parser.parse_args(argv)
+  if args.compiles:
+    height, width = (60, 80) if args.quick else (120, 160)
+    rows = compile_costs(height, width, repeats=1 if args.quick else 3)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / ("growth_compiles_quick.json" if args.quick else "growth_compiles.json")).write_text(
+        json.dumps({"height": height, "width": width, "programs": rows}, indent=1))
+    print(f"| program ({height}×{width}, 2^16 slots, 2^12 blocks) | lower s | compile s |\n"
+          "|---|---|---|")
+    for r in rows:
+      print(f"| {r['program']} | {r['lower_s']:.2f} | {r['compile_s']:.2f} |")
+    return
   if args.one:
     if os.environ.get("BENCH_GROWTH_CACHE"):
       from jaxfusion.lab import compile_cache   # the `jaxfusion` commands' cache, as they use it

@@ -103,11 +103,10 @@ class Mapper:
       table grows by the same rule, `grow_at` of its capacity, up to 2**24 blocks.
     free_space: free-space clearing (`init_map`'s option, docs/equations.md §10).
     growth_factor: how many times larger each growth makes a table (2, 4 or 8). A growth's
-      cost is mostly compiling `fuse_frame` for the new size (2.5–2.9 s on 2 CPU cores), so
-      fewer, larger growths cost less: in `bench/growth.py` (2,000 frames down a 60 m corridor)
-      4 spends 31 % of the fuse time on growth (room checks included), 2 spends 60 %, 8 22 %
-      (with tables left as little as 1/16 full). JAX's persistent compilation cache (which the
-      `jaxfusion` commands turn on) leaves a repeat run 0.6–0.7 s per growth frame.
+      cost is mostly compiling `fuse_frame` for the new size, so fewer, larger growths cost
+      less (8 leaves tables as little as 1/16 full); JAX's persistent compilation cache (which
+      the `jaxfusion` commands turn on) makes a repeat run's growths a fraction of that. The
+      measurements: bench/RESULTS.md, "A map that grows over a long walk" (`bench/growth.py`).
     keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
       `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
       A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
