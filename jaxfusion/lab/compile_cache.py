@@ -1,9 +1,9 @@
 """The `jaxfusion` commands keep their compiled programs between runs.
 
 XLA compiles each of the engine's programs once per shape, and on a CPU that is most of what a
-short command or a map's growth costs (`bench/growth.py`: 2.4–2.7 s per growth on 2 cores, of
-which about 0.3 s is left on a repeat run with the cache). The commands therefore turn on JAX's
-persistent compilation cache, in a folder of the user's cache directory:
+short command or a map's growth costs (`bench/growth.py` measures a growth with and without
+the cache: bench/RESULTS.md). The commands therefore turn on JAX's persistent compilation
+cache, in a folder of the user's cache directory:
 
 * `JAXFUSION_COMPILE_CACHE=off` (or `0`, `no`, `false`): no cache;
 * `JAXFUSION_COMPILE_CACHE=DIR`: that folder;
