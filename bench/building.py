@@ -61,8 +61,8 @@ import numpy as np
 
 import jaxfusion as jf
 from jaxfusion.datasets import floor as floor_lib
-from jaxfusion.lab import hugepages
 from jaxfusion.datasets.classes import CLASS_NAMES
+from jaxfusion.lab import hugepages
 
 K = len(CLASS_NAMES)
 NUM_QUERY = 2**16

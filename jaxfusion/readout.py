@@ -147,8 +147,9 @@ _query_jit = jax.jit(query_unchecked)
 
 def key_codes_unchecked(state: MapState, keys: jax.Array, valid: jax.Array) -> jax.Array:
   """`(N,) int32` where the map holds voxel keys `(N, 3) int32`: the slot where
-  `query_keys_unchecked` finds the key (observed), −1 where it does not, −2 where not `valid` (out of range). For the
-  mesh labels, which ask once per distinct slot (`slot_labels_unchecked`). No input checks."""
+  `query_keys_unchecked` finds the key (observed), −1 where it does not, −2 where not `valid`
+  (out of range). For the mesh labels, which ask once per distinct slot
+  (`slot_labels_unchecked`). No input checks."""
   slots, found = hashing.lookup(state.keys, keys, max_probes=state.max_probes)
   found = found & valid & observed_at(state, slots)
   return jnp.where(found, slots, jnp.where(valid, -1, -2)).astype(jnp.int32)

@@ -26,7 +26,8 @@ import re
 import sys
 from typing import Callable, Mapping, Optional
 
-OFF = ("off", "0", "no", "false", "none")
+from jaxfusion.lab.compile_cache import OFF   # the same words switch both off
+
 TUNABLE = "glibc.malloc.hugetlb"
 _THP_ENABLED = "/sys/kernel/mm/transparent_hugepage/enabled"
 _MIN_GLIBC = (2, 35)     # the first glibc with the hugetlb tunable
@@ -59,8 +60,8 @@ def environ_with(environ: Mapping[str, str], *, mode: Optional[str],
   """The environment to re-execute with (`environ` with `glibc.malloc.hugetlb=1` added to
   `GLIBC_TUNABLES`), or None when the process should run as started: switched off, the tunable
   already chosen, no glibc ≥ 2.35, or a kernel `mode` other than `madvise`."""
-  if environ.get("JAXFUSION_HUGEPAGES", "").strip().lower() in OFF and environ.get(
-      "JAXFUSION_HUGEPAGES", "").strip():
+  switch = environ.get("JAXFUSION_HUGEPAGES", "").strip().lower()
+  if switch and switch in OFF:
     return None
   tunables = environ.get("GLIBC_TUNABLES", "")
   if TUNABLE in tunables:
