@@ -42,6 +42,77 @@ def hash_keys(keys: jax.Array) -> jax.Array:
   return fmix32(k[:, 0] * _PRIME_X ^ k[:, 1] * _PRIME_Y ^ k[:, 2] * _PRIME_Z)
 
 
+def hash_keys_host(keys: np.ndarray) -> np.ndarray:
+  """`hash_keys` in NumPy, on the host: `(N, 3) int32` keys to the same `(N,) uint32`."""
+  k = np.ascontiguousarray(keys, np.int32).view(np.uint32).reshape(-1, 3)
+  return fmix32(k[:, 0] * _PRIME_X ^ k[:, 1] * _PRIME_Y ^ k[:, 2] * _PRIME_Z)
+
+
+def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int):
+  """Places distinct keys into an empty table of `capacity` slots, in NumPy on the host: the
+  rehash of a growing map without a program compiled for its capacity.
+
+  The same probing as `insert`: in round r every pending key looks at slot
+  `(hash + r) mod C`, one key per empty slot wins it (the first in order) and the others probe
+  on, up to `max_probes` rounds. So the table keeps `insert`'s invariant (a key sits before the
+  first empty slot of its probe sequence) and `lookup` and `insert` find every key placed.
+
+  Args:
+    capacity: C, a power of two.
+    keys: `(N, 3) int32` distinct keys.
+    max_probes: the table's probe bound.
+
+  Returns:
+    `(table (C, 3) int32, slots (N,) int32, found (N,) bool)`: keys not found did not fit.
+  """
+  keys = np.ascontiguousarray(keys, np.int32).reshape(-1, 3)
+  table = np.full((capacity, 3), EMPTY, np.int32)
+  home = (hash_keys_host(keys) & np.uint32(capacity - 1)).astype(np.int64)
+  slots = np.zeros(keys.shape[0], np.int32)
+  pending = np.arange(keys.shape[0])
+  taken = np.zeros(capacity, bool)
+  for probe in range(max_probes):
+    if not pending.size:
+      break
+    slot = (home[pending] + probe) & (capacity - 1)
+    free = ~taken[slot]
+    # One winner per free slot: the first pending key that looks at it.
+    _, first = np.unique(slot[free], return_index=True)
+    won = np.flatnonzero(free)[first]
+    table[slot[won]] = keys[pending[won]]
+    taken[slot[won]] = True
+    slots[pending[won]] = slot[won]
+    placed = np.zeros(pending.size, bool)
+    placed[won] = True
+    pending = pending[~placed]
+  found = np.ones(keys.shape[0], bool)
+  found[pending] = False
+  return table, slots, found
+
+
+def lookup_host(table: np.ndarray, keys: np.ndarray, *, max_probes: int):
+  """`lookup` in NumPy on the host: `(slots (N,) int32, found (N,) bool)` of keys `(N, 3)` in
+  a table `(C, 3) int32` (a NumPy array, or a JAX array in host memory, read in place). The
+  same probe sequence, so it finds exactly what `lookup` finds; it compiles nothing."""
+  table = np.asarray(table)
+  keys = np.ascontiguousarray(keys, np.int32).reshape(-1, 3)
+  capacity = table.shape[0]
+  home = (hash_keys_host(keys) & np.uint32(capacity - 1)).astype(np.int64)
+  slots = np.zeros(keys.shape[0], np.int32)
+  found = np.zeros(keys.shape[0], bool)
+  pending = np.arange(keys.shape[0])
+  for probe in range(max_probes):
+    if not pending.size:
+      break
+    slot = (home[pending] + probe) & (capacity - 1)
+    stored = table[slot]
+    match = np.all(stored == keys[pending], axis=-1)
+    found[pending[match]] = True
+    slots[pending[match]] = slot[match]
+    pending = pending[~match & (stored[:, 0] != EMPTY)]
+  return slots, found
+
+
 def empty_table(capacity: int) -> jax.Array:
   """A `(C, 3) int32` table with every slot EMPTY."""
   return jnp.full((capacity, 3), EMPTY, jnp.int32)

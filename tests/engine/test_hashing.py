@@ -112,3 +112,64 @@ def test_hash_spreads_neighbouring_keys():
   h = np.asarray(hashing.hash_keys(g.reshape(-1, 3).astype(np.int32))) & (4096 - 1)
   # 4096 neighbouring keys into 4096 buckets: a good hash fills ~63 % of them (1 − 1/e).
   assert len(np.unique(h)) > 0.55 * 4096
+
+
+# --- the host (NumPy) twins that a growing map on the CPU uses: no program per capacity ------
+
+@settings(max_examples=40, deadline=None)
+@given(keys=key_sets)
+def test_host_hash_equals_the_device_hash(keys):
+  keys = np.asarray(keys, np.int32).reshape(-1, 3)
+  np.testing.assert_array_equal(hashing.hash_keys_host(keys),
+                                np.asarray(hashing.hash_keys(jnp.asarray(keys))))
+
+
+def _probe_distance(slot, home, capacity):
+  return (slot - home) % capacity
+
+
+@settings(max_examples=60, deadline=None)
+@given(keys=key_sets, max_probes=st.integers(1, 8))
+def test_host_insert_keeps_the_probing_invariant_and_the_device_lookup_finds_it(keys,
+                                                                                max_probes):
+  """Every key `insert_host` places sits within `max_probes` of its home slot behind occupied
+  slots only (what `lookup` and `insert` rely on), no two share a slot, the device `lookup`
+  finds each at that slot, and exactly the keys reported lost are absent."""
+  keys = np.asarray(keys, np.int32).reshape(-1, 3)
+  table, slots, found = hashing.insert_host(CAPACITY, keys, max_probes=max_probes)
+  occupied = table[:, 0] != hashing.EMPTY
+  assert occupied.sum() == found.sum() == len(np.unique(slots[found]))
+  assert found.sum() == min(len(keys), CAPACITY) or max_probes < CAPACITY
+  home = hashing.hash_keys_host(keys).astype(np.int64) & (CAPACITY - 1)
+  for key, slot, h, ok in zip(keys, slots, home, found):
+    if ok:
+      np.testing.assert_array_equal(table[slot], key)
+      distance = _probe_distance(slot, h, CAPACITY)
+      assert distance < max_probes
+      assert all(occupied[(h + r) % CAPACITY] for r in range(distance))
+    else:   # lost: every slot of its probe sequence was taken
+      assert all(occupied[(h + r) % CAPACITY] for r in range(max_probes))
+  if len(keys):
+    query, _ = padded(keys)
+    dev_slots, dev_found = _lookup(jnp.asarray(table), query, max_probes)
+    np.testing.assert_array_equal(np.asarray(dev_found)[:len(keys)], found)
+    np.testing.assert_array_equal(np.asarray(dev_slots)[:len(keys)][found], slots[found])
+
+
+@settings(max_examples=40, deadline=None)
+@given(stored=key_sets, queries=key_sets)
+def test_host_lookup_equals_the_device_lookup(stored, queries):
+  """On a table the device `insert` built (short probes, so chains and refusals happen),
+  `lookup_host` finds exactly what `lookup` finds, at the same slots."""
+  table, claims = hashing.empty_table(CAPACITY), jnp.zeros(CAPACITY, jnp.int32)
+  keys, active = padded(np.asarray(stored, np.int32).reshape(-1, 3))
+  table = _insert(table, claims, keys, active, 4).table
+  # Half stored keys, then near misses (a stored key with one coordinate moved), then others.
+  near = [(x, y, z + 1) for x, y, z in stored[:BATCH // 4]]
+  query = np.asarray(list(stored[:BATCH // 4]) + near + list(queries), np.int64)
+  query = np.clip(query, -(2**30), 2**30).astype(np.int32).reshape(-1, 3)[:BATCH]
+  padded_query, _ = padded(query)
+  dev_slots, dev_found = _lookup(table, padded_query, 4)
+  slots, found = hashing.lookup_host(np.asarray(table), query, max_probes=4)
+  np.testing.assert_array_equal(found, np.asarray(dev_found)[:len(query)])
+  np.testing.assert_array_equal(slots[found], np.asarray(dev_slots)[:len(query)][found])
