@@ -73,7 +73,7 @@ def _find_groups(state: MapState, keys, groups, counts):
 
 def _unfuse_frame_of(state: MapState, frames: fusion.Frame, camera: camera_lib.Camera,
                      rule: rules_base.FusionRule, index) -> MapState:
-  px = fusion._frame_pixels(state, frames, camera, rule, index)   # pylint: disable=protected-access
+  px = fusion._frame_pixels(state.voxel_size, frames, camera, rule, index)   # pylint: disable=protected-access
   groups, counts, chunk = fusion._pixel_groups(px.keys, px.valid)  # pylint: disable=protected-access
   slot_of_group = _find_groups(state, px.keys, groups, counts)
   rows = fusion._rows_update(rule, chunk, px.observe, kernel=rule.remove)(  # pylint: disable=protected-access

@@ -255,10 +255,11 @@ class _Pixels(NamedTuple):
   observe: Callable     # observe(p, v, c, hparams) -> PixelTerms of a block of pixels
 
 
-def _frame_pixels(state: MapState, frames: Frame, camera: camera_lib.Camera,
+def _frame_pixels(voxel_size, frames: Frame, camera: camera_lib.Camera,
                   rule: rules_base.FusionRule, index) -> _Pixels:
   """Keys, valid pixels, guarded per-pixel terms and context of one frame (`frames` itself, or
-  frame `index` of a stack), shared by fusing and de-integrating (`jaxfusion.deintegration`)."""
+  frame `index` of a stack) at `voxel_size` (`() float32`, the map's), shared by fusing and
+  de-integrating (`jaxfusion.deintegration`)."""
   height, width, num_classes = frames.probs.shape[-3:]
   n = height * width
   stack = lambda x: jnp.asarray(x, jnp.float32).reshape(np.shape(x)[:-3] + (n, num_classes))
@@ -266,7 +267,7 @@ def _frame_pixels(state: MapState, frames: Frame, camera: camera_lib.Camera,
   # Geometry: every pixel → world point → voxel key, in one fused elementwise pass.
   depth = jnp.asarray(_frame_of(frames.depth, index), jnp.float32)
   pose = _frame_of(frames.T_world_cam, index)
-  keys, in_range = camera_lib.depth_to_voxel_keys(depth, pose, camera, state.voxel_size)
+  keys, in_range = camera_lib.depth_to_voxel_keys(depth, pose, camera, voxel_size)
 
   # Valid pixels: positive finite depth, finite probabilities (and variances if given).
   probs = stack(frames.probs)
@@ -320,7 +321,7 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
                    rule: rules_base.FusionRule, index) -> MapState:
   """Fuses one frame: `frames` itself (`index` None), or frame `index` (traced int) of a stack
   whose fields carry a leading T axis, read in place (`fuse_sequence_unchecked`)."""
-  px = _frame_pixels(state, frames, camera, rule, index)
+  px = _frame_pixels(state.voxel_size, frames, camera, rule, index)
   valid = px.valid
 
   # The geometry layer, when the map has one, integrates the same depth and pose in the same
@@ -332,13 +333,21 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
       valid = valid & tsdf.surface_gate(geometry, px.depth, px.pose, camera)
     geometry = tsdf.integrate_unchecked(geometry, px.depth, px.pose, camera)
 
+  groups, counts, chunk = _pixel_groups(px.keys, valid)
+  state = _fuse_groups(state, px, groups, counts, chunk, camera, rule, index)
+  return state.replace(geometry=geometry)
+
+
+def _fuse_groups(state: MapState, px: _Pixels, groups: PixelGroups, counts, chunk: int,
+                 camera: camera_lib.Camera, rule: rules_base.FusionRule, index) -> MapState:
+  """The semantic layer's half of a frame that reads the map: the frame's voxel groups placed,
+  free space marked (when the map has the layer) and each touched voxel's rows updated once.
+  `state.geometry` is passed through untouched."""
   # Free space (docs/equations.md §10), when the map has the layer: a free voxel the frame hits
   # restarts (its hits from 0, its row from the rule's prior).
   reset = fresh = None
   if state.free_space is not None:
     reset = free_space_lib.is_free(state.free_space)
-
-  groups, counts, chunk = _pixel_groups(px.keys, valid)
 
   # Place the frame's voxels in the map, then reduce the rule's per-pixel terms per voxel and
   # update each touched voxel once.
@@ -353,7 +362,76 @@ def _fuse_frame_of(state: MapState, frames: Frame, camera: camera_lib.Camera,
   rows = _rows_update(rule, chunk, px.observe)(
       state.rows, px.probs, px.var, px.ctx, rule.hparams, groups.segment, counts,
       slot_of_group, groups.num_groups, index, fresh)
-  return state.replace(rows=rows, geometry=geometry)
+  return state.replace(rows=rows)
+
+
+class PreparedFrame(NamedTuple):
+  """The half of a frame's fusion that does not read the map (`prepare_frame_unchecked`).
+
+  A `fuse_frame` is one program, compiled for the map's capacity: a map that grows compiles
+  it again, grouping and all. The `Mapper` runs a frame as this capacity-free half (compiled
+  once) and the halves that read the tables (`fuse_prepared_unchecked`, and
+  `tsdf.integrate_blocks_unchecked` for the geometry layer), so a growth recompiles only the
+  grown table's half; the result is that of `fuse_frame`. It also says how many voxels and
+  blocks the frame touches: the `Mapper`'s room check.
+  """
+  keys: jax.Array                       # (N, 3) int32 the voxel key of every pixel
+  groups: PixelGroups                   # valid pixels per voxel, first_pixel padded to chunks
+  counts: jax.Array                     # (P,) float32 valid pixels of each group
+  blocks: Optional[tsdf.FrameBlocks]    # the geometry layer's blocks, or None
+
+
+def prepare_frame_unchecked(voxel_size, frame: Frame, camera: camera_lib.Camera,
+                            rule: rules_base.FusionRule,
+                            geometry: Optional[tsdf.TSDFState] = None) -> PreparedFrame:
+  """A frame's voxel keys grouped per voxel, and its geometry layer's blocks (pure, no checks).
+
+  Args:
+    voxel_size: `() float32` the map's voxel edge (`state.voxel_size`).
+    frame: one Frame (no leading axis).
+    camera: intrinsics.
+    rule: the map's FusionRule.
+    geometry: the map's geometry layer as `tsdf.settings_only(...)` (its settings; any arrays
+      would tie the program to a capacity), or None for a map without one. A layer with
+      `gate_semantics` cannot be prepared apart: its gate reads the layer's table.
+
+  Returns:
+    A PreparedFrame; `groups.num_groups` voxels and `blocks.num_groups` blocks are what the
+    frame touches, an upper bound of what it adds.
+  """
+  if geometry is not None and geometry.gate_semantics:
+    raise ValueError("a geometry layer with gate_semantics cannot be prepared apart from its "
+                     "table: use fuse_frame")
+  px = _frame_pixels(voxel_size, frame, camera, rule, None)
+  groups, counts, _ = _pixel_groups(px.keys, px.valid)
+  blocks = None if geometry is None else tsdf.frame_blocks(geometry, px.depth, px.pose, camera)
+  return PreparedFrame(px.keys, groups, counts, blocks)
+
+
+def fuse_prepared_unchecked(state: MapState, prepared: PreparedFrame, frame: Frame,
+                            camera: camera_lib.Camera, rule: rules_base.FusionRule) -> MapState:
+  """The semantic layer's half of `fuse_frame` that reads the map, given the frame's
+  `prepare_frame_unchecked` (pure, no checks).
+
+  Args:
+    state: the map without its geometry layer (`state.replace(geometry=None)`: the layer's
+      arrays would tie the program to its capacity; `tsdf.integrate_blocks_unchecked` fuses it).
+    prepared: the frame's PreparedFrame at `state.voxel_size`.
+    frame, camera, rule: as for `fuse_frame`, the frame the one prepared.
+
+  Returns:
+    The new MapState (geometry None): equal to `fuse_frame`'s semantic layer.
+  """
+  if state.geometry is not None:
+    raise ValueError("fuse_prepared_unchecked fuses the semantic layer: pass "
+                     "state.replace(geometry=None) and integrate the geometry layer apart")
+  px = _frame_pixels(state.voxel_size, frame, camera, rule, None)._replace(keys=prepared.keys)
+  chunk = min(_CHUNK, prepared.keys.shape[0])
+  return _fuse_groups(state, px, prepared.groups, prepared.counts, chunk, camera, rule, None)
+
+
+prepare_frame = jax.jit(prepare_frame_unchecked)
+fuse_prepared_donating = jax.jit(fuse_prepared_unchecked, donate_argnums=0)
 
 
 # `fuse_frame_unchecked` compiled, with the map's buffers donated (what `fuse_frame` calls on

@@ -3,10 +3,17 @@
 `fuse_frame` and `fuse_sequence` work on a fixed-capacity map (its arrays are allocated once
 and a full map drops voxels, counted). `Mapper` holds a map and, before each frame or stack of
 frames, checks whether fusing it could push the load factor past `grow_at`; if so it first
-rehashes the map into a table twice as large (or larger) with `grow_map`, which keeps every
+rehashes the map into a table `growth_factor` times as large with `grow_map`, which keeps every
 posterior, ᾱ and hit count exactly. So a long run never drops a voxel for lack of room, and the
 cost per frame stays that of `fuse_frame` between growths (the check is a host-side count in the
 common case; see `Mapper.fuse`).
+
+A growth is cheap because little is compiled for the new size: `Mapper.fuse` runs a frame as
+its capacity-free half (`fusion.prepare_frame`: projection and grouping, compiled once) and
+each table's half (placement and update, a smaller program per capacity), and on the CPU the
+rehash and the exact room counts run in NumPy on the tables in place (`state.grown_map_host`,
+`hashing.lookup_host`), compiling nothing. bench/RESULTS.md, "A map that grows over a long
+walk", has the measurements.
 
 Example:
   >>> mapper = jaxfusion.Mapper(jaxfusion.rules.robust(), num_classes=7, capacity=2**14)
@@ -18,6 +25,7 @@ Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
 import collections
+import functools
 from typing import Optional
 
 import jax
@@ -73,6 +81,28 @@ def new_voxel_count(state: state_lib.MapState, depth: jax.Array, T_world_cam: ja
   return hashing.count_missing(state.keys, keys, is_group, max_probes=state.max_probes)
 
 
+@functools.partial(jax.jit, static_argnames=("max_probes",))
+def _missing_on_device(table: jax.Array, keys: jax.Array, first: jax.Array,
+                       num_groups: jax.Array, *, max_probes: int) -> jax.Array:
+  is_group = jnp.arange(first.shape[0]) < num_groups
+  _, found = hashing.lookup(table, keys[first], max_probes=max_probes)
+  return jnp.sum(is_group & ~found, dtype=jnp.int32)
+
+
+def _missing(table: jax.Array, keys: jax.Array, first: jax.Array, num_groups: jax.Array, *,
+             max_probes: int) -> int:
+  """How many of the groups `keys[first[g]]`, g < num_groups, the table `(C, 3)` lacks: a
+  prepared frame's exact count of new voxels or blocks. A table in host memory (the CPU) is
+  read in place by NumPy (`hashing.lookup_host`: nothing to compile for a new capacity);
+  elsewhere it is a small program per capacity."""
+  if state_lib.on_host(table):
+    count = int(num_groups)
+    rows = np.asarray(first)[:count]
+    _, found = hashing.lookup_host(table, np.asarray(keys)[rows], max_probes=max_probes)
+    return int(count - np.count_nonzero(found))
+  return int(_missing_on_device(table, keys, first, num_groups, max_probes=max_probes))
+
+
 # How many of the latest calls the geometry layer's cheap room check remembers, and the load
 # a block table may reach if a call adds more than that check expects (bench/growth.py: frames
 # of ~4 800 new blocks or voxels, none refused at the 64-probe bound at load ≤ 0.6).
@@ -103,10 +133,11 @@ class Mapper:
       table grows by the same rule, `grow_at` of its capacity, up to 2**24 blocks.
     free_space: free-space clearing (`init_map`'s option, docs/equations.md §10).
     growth_factor: how many times larger each growth makes a table (2, 4 or 8). A growth's
-      cost is mostly compiling `fuse_frame` for the new size, so fewer, larger growths cost
-      less (8 leaves tables as little as 1/16 full); JAX's persistent compilation cache (which
-      the `jaxfusion` commands turn on) makes a repeat run's growths a fraction of that. The
-      measurements: bench/RESULTS.md, "A map that grows over a long walk" (`bench/growth.py`).
+      cost is mostly compiling the grown table's half of a frame for the new size, so fewer,
+      larger growths cost less (8 leaves tables as little as 1/16 full); JAX's persistent
+      compilation cache (which the `jaxfusion` commands turn on) makes a repeat run's growths
+      a fraction of that. The measurements: bench/RESULTS.md, "A map that grows over a long
+      walk" (`bench/growth.py`).
     keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
       `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
       A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
@@ -152,6 +183,11 @@ class Mapper:
     self._blocks_before = None
     if self.state.capacity > self.max_capacity:
       raise ValueError(f"capacity {self.state.capacity} exceeds max_capacity {max_capacity}")
+    # The geometry layer's settings for `fusion.prepare_frame` (None: fuse frames as one
+    # `fuse_frame`, which a gate_semantics layer needs).
+    layer = self.state.geometry
+    self._staged = layer is None or not layer.gate_semantics
+    self._settings = None if layer is None else tsdf_lib.settings_only(layer)
     self.growths = []
     self.geometry_growths = []
     self.frames_fused = 0
@@ -171,26 +207,19 @@ class Mapper:
       return   # even if every valid pixel were a new voxel (the usual case: no device work)
     new = int(new_voxel_count(self.state, jnp.asarray(depth, jnp.float32),
                               jnp.asarray(T_world_cam, jnp.float32), camera))
-    need = occupied + new
-    if need <= limit:
-      return
-    capacity = self.state.capacity
-    while need > self.grow_at * capacity and capacity < self.max_capacity:
-      capacity = min(capacity * self.growth_factor, self.max_capacity)
-    if capacity == self.state.capacity:
-      return   # at max_capacity: fuse anyway; what does not fit is dropped and counted
-    old = self.state.capacity
-    self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
-    self.growths.append((self.frames_fused, old, capacity))
+    if occupied + new > limit:
+      self._grow_for(occupied + new)
 
-  def _ensure_geometry_room(self, depth, T_world_cam, camera) -> None:
+  def _ensure_geometry_room(self, depth, T_world_cam, camera, prepared=None) -> None:
     """Grows the geometry layer's block table before frames that could fill it past
-    `grow_at`. The exact count (`tsdf.count_new_blocks`: every ray sample looked up) is
-    skipped when even a call whose every ray sample found a new block stays under
-    `grow_at`, or when four times the most blocks one of the last `_RECENT_CALLS` calls added
-    does and four times the most any call has added would still leave the table under
-    `_SAFE_LOAD` (the calls' blocks are read from the layer's block count: the first frame's,
-    all new, set the safety margin but not the everyday one)."""
+    `grow_at`. The count of the blocks the frames add is skipped when even a call whose every
+    ray sample found a new block stays under `grow_at`, or when four times the most blocks one
+    of the last `_RECENT_CALLS` calls added does and four times the most any call has added
+    would still leave the table under `_SAFE_LOAD` (the calls' blocks are read from the
+    layer's block count: the first frame's, all new, set the safety margin but not the
+    everyday one). The count is exact: of a `prepared` frame, the blocks it touches and, if
+    those could overfill the table, the ones the table lacks (`_missing`); of a stack, every
+    ray sample looked up (`tsdf.count_new_blocks`)."""
     geometry = self.state.geometry
     blocks = int(geometry.num_blocks)
     if self._blocks_before is not None:
@@ -208,8 +237,15 @@ class Mapper:
     if (self._recent_blocks and blocks + 4 * max(max(self._recent_blocks), 1) <= limit
         and blocks + 4 * self._most_blocks <= max(_SAFE_LOAD, self.grow_at) * geometry.capacity):
       return
-    new = tsdf_lib.count_new_blocks(geometry, jnp.asarray(depth, jnp.float32),
-                                    jnp.asarray(T_world_cam, jnp.float32), camera)
+    if prepared is None:
+      new = tsdf_lib.count_new_blocks(geometry, jnp.asarray(depth, jnp.float32),
+                                      jnp.asarray(T_world_cam, jnp.float32), camera)
+    else:
+      touched = prepared.blocks
+      new = int(touched.num_groups)
+      if blocks + new > limit:
+        new = _missing(geometry.block_keys, touched.keys, touched.first, touched.num_groups,
+                       max_probes=geometry.max_probes)
     self._most_blocks = max(self._most_blocks, new)
     capacity = geometry.capacity
     while blocks + new > self.grow_at * capacity and capacity < 2**24:
@@ -220,7 +256,12 @@ class Mapper:
 
   def fuse(self, frame: fusion.Frame, camera: camera_lib.Camera, *,
            frame_id=None) -> state_lib.MapState:
-    """Fuses one frame (`fuse_frame`), growing the map first if it could overfill.
+    """Fuses one frame (as `fuse_frame`), growing the map first if it could overfill.
+
+    The frame runs as two or three programs (`fusion.prepare_frame`, then the semantic and
+    geometry tables' halves: see `fusion.PreparedFrame`), so a growth recompiles only the
+    grown table's half; with a `gate_semantics` geometry layer it runs as one `fuse_frame`.
+    The result is `fuse_frame`'s.
 
     `frame_id` names the frame for `unfuse` / `reintegrate` when frames are kept (default: the
     number of frames fused before it)."""
@@ -231,11 +272,61 @@ class Mapper:
       raise ValueError(f"depth must have shape (H, W); got {depth.shape} (use fuse_sequence "
                        "for a stack)")
     frame_id = self._new_id(frame_id, self.frames_fused)
-    self._ensure_room(depth[None], np.asarray(frame.T_world_cam)[None], camera)
-    self.state = fusion.fuse_frame(self.state, frame, camera, self.rule)
+    if not self._staged:
+      self._ensure_room(depth[None], np.asarray(frame.T_world_cam)[None], camera)
+      self.state = fusion.fuse_frame(self.state, frame, camera, self.rule)
+    else:
+      self._fuse_prepared(frame, depth, camera)
     self.frames_fused += 1
     self._keep(frame_id, frame, camera)
     return self.state
+
+  def _fuse_prepared(self, frame: fusion.Frame, depth: np.ndarray, camera) -> None:
+    """`fuse`'s staged path: prepare the frame (compiled once), make room by what it touches,
+    then run each table's half."""
+    check = fusion._check_inputs   # pylint: disable=protected-access
+    check(self.state, frame, camera, self.rule, batch_dims=0, sample=True)
+    prepared = fusion.prepare_frame(self.state.voxel_size, frame, camera, self.rule,
+                                    self._settings)
+    self._make_room(prepared, depth, np.asarray(frame.T_world_cam), camera)
+    geometry = self.state.geometry
+    state = fusion.fuse_prepared_donating(self.state.replace(geometry=None), prepared, frame,
+                                          camera, self.rule)
+    if geometry is not None:
+      geometry = tsdf_lib.integrate_blocks_donating(geometry, prepared.blocks, frame.depth,
+                                                    frame.T_world_cam, camera)
+    self.state = state.replace(geometry=geometry)
+
+  def _make_room(self, prepared: fusion.PreparedFrame, depth: np.ndarray,
+                 T_world_cam: np.ndarray, camera) -> None:
+    """Grows a table before a prepared frame that could push it past `grow_at`. In turn, until
+    one leaves room: a host-side bound (every valid pixel, every ray sample a new voxel or
+    block; for the geometry layer also the recent frames' additions: no device work), the
+    voxels and blocks the frame touches (its preparation's counts), and the exact count of
+    those the table lacks (`_missing`, a small program per capacity)."""
+    if self.state.geometry is not None:
+      self._ensure_geometry_room(depth[None], T_world_cam[None], camera, prepared)
+    occupied = int(self.state.num_occupied)
+    limit = self.grow_at * self.state.capacity
+    groups = prepared.groups
+    if occupied + _valid_depth_count(depth) <= limit or (
+        occupied + int(groups.num_groups) <= limit):
+      return
+    first = groups.first_pixel[:prepared.counts.shape[0]]
+    self._grow_for(occupied + _missing(self.state.keys, prepared.keys, first, groups.num_groups,
+                                       max_probes=self.state.max_probes))
+
+  def _grow_for(self, need: int) -> None:
+    """Grows the semantic table until `need` voxels stay under `grow_at` of it (or it reaches
+    `max_capacity`: then what does not fit is dropped and counted)."""
+    capacity = self.state.capacity
+    while need > self.grow_at * capacity and capacity < self.max_capacity:
+      capacity = min(capacity * self.growth_factor, self.max_capacity)
+    if capacity == self.state.capacity:
+      return
+    old = self.state.capacity
+    self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
+    self.growths.append((self.frames_fused, old, capacity))
 
   # --- kept frames: de-integration, re-integration, rebuild (docs/equations.md §11.3) -------
   def _new_id(self, frame_id, default):

@@ -254,6 +254,43 @@ def grown_map(state: MapState, prior, *, capacity: int):
                        claims=jnp.zeros(capacity, jnp.int32)), lost
 
 
+def on_host(x: jax.Array) -> bool:
+  """True when the array lives in host memory (JAX's CPU devices), where NumPy reads it in
+  place: a growth is then rehashed by NumPy (`grown_map_host`), with nothing to compile."""
+  return all(device.platform == "cpu" for device in x.devices())
+
+
+def grown_map_host(state: MapState, prior, *, capacity: int):
+  """`grown_map` in NumPy on the host: the same voxels, rows, hits and log-odds in a table of
+  `capacity` slots placed by `hashing.insert_host`, returned as device arrays. It compiles
+  nothing, so a growing map on the CPU pays no compile for its rehash (bench/RESULTS.md, "A
+  map that grows over a long walk"); the slots a voxel lands in may differ from `grown_map`'s
+  where keys collide, the map read out does not.
+
+  Returns:
+    `(grown, lost)` as `grown_map`: the map of C' slots and the voxels that found no slot.
+  """
+  keys = np.asarray(state.keys)
+  old = np.flatnonzero(keys[:, 0] != hashing.EMPTY)
+  table, slots, found = hashing.insert_host(capacity, keys[old], max_probes=state.max_probes)
+  src, dest = old[found], slots[found]
+
+  def move(old_values, fill):
+    old_values = np.asarray(old_values)
+    new = np.empty((capacity,) + old_values.shape[1:], old_values.dtype)
+    new[...] = np.asarray(fill, old_values.dtype)
+    new[dest] = old_values[src]
+    return jnp.asarray(new)
+
+  rows = jax.tree.map(move, state.rows, prior)
+  free = state.free_space
+  if free is not None:
+    free = free.replace(log_odds=move(free.log_odds, 0.0))
+  grown = state.replace(keys=jnp.asarray(table), rows=rows, hits=move(state.hits, 0),
+                        free_space=free, claims=jnp.asarray(np.zeros(capacity, np.int32)))
+  return grown, int(np.count_nonzero(~found))
+
+
 def prior_row(state: MapState, rule: Optional[rules_base.FusionRule] = None):
   """The prior row of `state`'s rule (a dict of `(K,) float32`): the rule's, or the rows of an
   empty slot (a slot whose key is EMPTY still holds the prior)."""
@@ -272,9 +309,10 @@ def grow_map(state: MapState, capacity: int, *,
   """The same map in a larger table: every voxel keeps its rows (posterior, ᾱ, …) and hit
   count exactly; only the slots change.
 
-  Not jittable (the capacity is an array shape), but one compiled program per old and new
-  capacity (`grown_map`). Call it between frames (the `Mapper` does, before a frame could
-  push the load factor past its threshold).
+  Not jittable (the capacity is an array shape). On the CPU it rehashes in NumPy, the arrays
+  read in place (`grown_map_host`: nothing compiled); on an accelerator it runs one compiled
+  program per old and new capacity (`grown_map`). Call it between frames (the `Mapper` does,
+  before a frame could push the load factor past its threshold).
 
   Args:
     state: an unbatched map; it is not donated and stays valid.
@@ -302,7 +340,10 @@ def grow_map(state: MapState, capacity: int, *,
     raise ValueError(f"grow_map cannot shrink a map: capacity {capacity} < {state.capacity}")
   if rule is not None and rule.name != state.rule_name:
     raise ValueError(f"rule {rule.name!r} does not match the map's {state.rule_name!r}")
-  grown, lost = grown_map(state, prior_row(state, rule), capacity=capacity)
+  if on_host(state.keys):
+    grown, lost = grown_map_host(state, prior_row(state, rule), capacity=capacity)
+  else:
+    grown, lost = grown_map(state, prior_row(state, rule), capacity=capacity)
   lost = int(lost)
   if lost:
     raise ValueError(f"{lost} of {int(state.num_occupied)} voxels found no slot within "

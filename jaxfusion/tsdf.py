@@ -31,7 +31,7 @@ import dataclasses
 import functools
 import math
 import warnings
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -472,17 +472,39 @@ def _voxel_update(static):
   return update
 
 
-def _frame_blocks(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
-                  camera: camera_lib.Camera):
-  """`(keys, first, num_groups)`: the block key of every ray sample of the frame's band
-  (§8.2), a sample of each distinct block (padded to whole insertion chunks) and how many there
-  are; what `integrate` inserts and `deintegrate` looks up."""
+class FrameBlocks(NamedTuple):
+  """The blocks one frame's band touches, found without reading the block table
+  (`frame_blocks`): what `integrate` inserts and `deintegrate` looks up."""
+  keys: jax.Array         # (S·n, 3) int32 the block key of every ray sample
+  first: jax.Array        # (P,) int32 a sample of each distinct block in row g (padded to whole
+                          # insertion chunks; rows ≥ num_groups: 0)
+  num_groups: jax.Array   # () int32 U, the distinct blocks
+
+
+def frame_blocks(state: TSDFState, depth: jax.Array, T_world_cam: jax.Array,
+                 camera: camera_lib.Camera) -> FrameBlocks:
+  """The block key of every ray sample of the frame's band (§8.2), grouped per block (pure,
+  jittable). Reads the layer's settings only, never its arrays, so a layer whose arrays have
+  no slots (`settings_only`) gives the same result and a program of it compiles once for every
+  capacity."""
   keys, valid = band_block_keys(state, depth, T_world_cam, camera)
   groups = group_pixels(keys, valid)
   n = keys.shape[0]
   chunk = min(_INSERT_CHUNK, n)
   padded = -(-n // chunk) * chunk
-  return keys, jnp.pad(groups.first_pixel, (0, padded - n)), groups.num_groups
+  return FrameBlocks(keys, jnp.pad(groups.first_pixel, (0, padded - n)), groups.num_groups)
+
+
+def settings_only(state: TSDFState) -> TSDFState:
+  """The layer with its settings and scalars but table arrays of no slots: what
+  `frame_blocks` reads, in a form whose shapes do not change when the layer grows. Every
+  array is a copy, so it stays valid when the layer is donated."""
+  copy = lambda x: jnp.array(x, copy=True)
+  return state.replace(block_keys=state.block_keys[:0], claims=state.claims[:0],
+                       sdf=state.sdf[:0], weight=state.weight[:0],
+                       num_blocks=copy(state.num_blocks), num_dropped=copy(state.num_dropped),
+                       voxel_size=copy(state.voxel_size), max_weight=copy(state.max_weight),
+                       max_depth=copy(state.max_depth))
 
 
 def _voxel_settings(state: TSDFState):
@@ -498,7 +520,18 @@ def integrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.Arr
   """`integrate`'s pure body (no checks, not jitted, nothing donated): for code that composes
   the layer inside its own traced function (`fusion`, a user's `jax.jit`)."""
   depth = jnp.asarray(depth, jnp.float32)
-  keys, first, num_groups = _frame_blocks(state, depth, T_world_cam, camera)
+  return integrate_blocks_unchecked(state, frame_blocks(state, depth, T_world_cam, camera), depth,
+                                    T_world_cam, camera)
+
+
+def integrate_blocks_unchecked(state: TSDFState, blocks: FrameBlocks, depth: jax.Array,
+                               T_world_cam: jax.Array, camera: camera_lib.Camera) -> TSDFState:
+  """The half of `integrate_unchecked` that reads the block table: the frame's blocks
+  (`frame_blocks` of the same depth and pose) placed and their voxels updated (§8.3–8.4).
+  `integrate_unchecked` is `frame_blocks` then this; the `Mapper` runs them as two programs
+  so that a growth recompiles this one only."""
+  depth = jnp.asarray(depth, jnp.float32)
+  keys, first, num_groups = blocks
   state, slot_of_group = _place_blocks(state, keys, first, num_groups)
   static, params = _voxel_settings(state)
   sdf, weight = _voxel_update(static)(
@@ -509,6 +542,8 @@ def integrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.Arr
 
 _integrate_donating = jax.jit(integrate_unchecked, donate_argnums=0)
 _integrate_copying = jax.jit(integrate_unchecked)
+# The table half alone, donated: what the `Mapper` runs after `frame_blocks`.
+integrate_blocks_donating = jax.jit(integrate_blocks_unchecked, donate_argnums=0)
 
 
 def check_frame_geometry(depth, T_world_cam, camera, *, batch_dims: int = 0) -> None:
@@ -590,7 +625,7 @@ def deintegrate_unchecked(state: TSDFState, depth: jax.Array, T_world_cam: jax.A
                           camera: camera_lib.Camera) -> TSDFState:
   """`deintegrate`'s pure body (no checks, not jitted, nothing donated; not differentiable)."""
   depth = jnp.asarray(depth, jnp.float32)
-  keys, first, num_groups = _frame_blocks(state, depth, T_world_cam, camera)
+  keys, first, num_groups = frame_blocks(state, depth, T_world_cam, camera)
   slot_of_found, num_found = _find_blocks(state, keys, first, num_groups)
   static, params = _voxel_settings(state)
   T = jnp.asarray(T_world_cam, jnp.float32)
@@ -756,11 +791,32 @@ def grown_tsdf(state: TSDFState, *, capacity: int):
                        weight=weight), lost
 
 
+def grown_tsdf_host(state: TSDFState, *, capacity: int):
+  """`grown_tsdf` in NumPy on the host (`hashing.insert_host`; what `grow_tsdf` runs on the
+  CPU, where it compiles nothing): `(grown, lost)` as `grown_tsdf`."""
+  keys = np.asarray(state.block_keys)
+  old = np.flatnonzero(keys[:, 0] != hashing.EMPTY)
+  table, slots, found = hashing.insert_host(capacity, keys[old], max_probes=state.max_probes)
+  src, dest = old[found], slots[found]
+
+  def move(values):
+    values = np.asarray(values)
+    new = np.zeros((capacity,) + values.shape[1:], values.dtype)
+    new[dest] = values[src]
+    return jnp.asarray(new)
+
+  grown = state.replace(block_keys=jnp.asarray(table),
+                        claims=jnp.asarray(np.zeros(capacity, np.int32)),
+                        sdf=move(state.sdf), weight=move(state.weight))
+  return grown, int(np.count_nonzero(~found))
+
+
 def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
   """The same layer in a larger table: every block keeps its sdf and weight exactly.
 
-  Not jittable (the capacity is a shape), but one compiled program per old and new capacity
-  (`grown_tsdf`); `Mapper` calls it between frames.
+  Not jittable (the capacity is a shape): on the CPU a NumPy rehash (`grown_tsdf_host`,
+  nothing compiled), elsewhere one compiled program per old and new capacity (`grown_tsdf`);
+  `Mapper` calls it between frames.
 
   Args:
     state: one layer; not donated.
@@ -778,7 +834,10 @@ def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
     raise ValueError(f"capacity must be a power of two ≤ 2**24; got {capacity!r}")
   if capacity < state.capacity:
     raise ValueError(f"grow_tsdf cannot shrink a layer: capacity {capacity} < {state.capacity}")
-  grown, lost = grown_tsdf(state, capacity=capacity)
+  if all(device.platform == "cpu" for device in state.block_keys.devices()):   # host memory
+    grown, lost = grown_tsdf_host(state, capacity=capacity)
+  else:
+    grown, lost = grown_tsdf(state, capacity=capacity)
   if int(lost):
     raise ValueError(f"{int(lost)} blocks found no slot within {state.max_probes} probes at "
                      f"capacity {capacity}: grow to a larger one")

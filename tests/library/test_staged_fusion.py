@@ -1,0 +1,138 @@
+"""The `Mapper`'s staged frame: `fusion.prepare_frame` (compiled once) then each table's half
+(`fusion.fuse_prepared_unchecked`, `tsdf.integrate_blocks_unchecked`), so that a growth
+recompiles only the grown table's half, and the host (NumPy) rehash a growth runs on the CPU.
+The map comes out as `fuse_frame`'s, bit for bit."""
+
+import jax
+import numpy as np
+import pytest
+
+import jaxfusion as jf
+from jaxfusion import fusion
+from jaxfusion import state as state_lib
+from jaxfusion import tsdf
+
+K = 5
+CAMERA = jf.Camera(24.0, 24.0, 19.5, 14.5)
+
+
+def _frames(num_frames, seed=0):
+  """A walk past rough walls at 5 cm voxels: ~1 100 new voxels and ~120 new blocks a frame."""
+  rng = np.random.default_rng(seed)
+  depth = rng.uniform(1.0, 6.0, (num_frames, 30, 40)).astype(np.float32)
+  depth[:, :2] = 0.0
+  depth[:, 5, 7] = np.nan                                 # a hole of another kind
+  poses = np.tile(np.eye(4, dtype=np.float32), (num_frames, 1, 1))
+  poses[:, 0, 3] = np.arange(num_frames) * 0.8
+  probs = rng.dirichlet(np.ones(K), (num_frames, 30, 40)).astype(np.float32)
+  probs[:, 3, 3] = [1.0, 0.0, 0.0, 0.0, 0.0]              # exactly 0 and 1
+  var = rng.uniform(0.0, 0.05, (num_frames, 30, 40, K)).astype(np.float32)
+  return [jf.Frame(depth[t], poses[t], probs[t], var[t]) for t in range(num_frames)]
+
+
+def _blocks(layer) -> dict:
+  keys = np.asarray(layer.block_keys)
+  stored = keys[:, 0] != jf.hashing.EMPTY
+  sdf, weight = np.asarray(layer.sdf), np.asarray(layer.weight)
+  return {tuple(k): (s, w) for k, s, w in zip(keys[stored], sdf[stored], weight[stored])}
+
+
+def _assert_same_maps(a, b):
+  va, vb = jf.read_map(a), jf.read_map(b)
+  assert set(va) == set(vb)
+  for key in va:
+    np.testing.assert_array_equal(va[key], vb[key], err_msg=key)
+  assert int(a.num_dropped) == 0 == int(b.num_dropped)
+  if a.geometry is not None:
+    ga, gb = _blocks(a.geometry), _blocks(b.geometry)
+    assert ga.keys() == gb.keys()
+    for key, (sdf, weight) in ga.items():
+      np.testing.assert_array_equal(sdf, gb[key][0])
+      np.testing.assert_array_equal(weight, gb[key][1])
+
+
+def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves():
+  """Both layers (and free space) grow twice from frame 1 on (frame 0 leaves room, so the
+  prepared geometry settings must outlive the layer's donation); the map equals a map of the
+  final capacities fused frame by frame with `fuse_frame`, bit for bit, and across the
+  growths the frame's half compiled once, the rehashes not at all (host NumPy)."""
+  rule = jf.rules.robust(beta=0.3)
+  frames = _frames(8)
+  programs = {name: fun._cache_size() for name, fun in (
+      ("prepare", fusion.prepare_frame), ("semantic", fusion.fuse_prepared_donating),
+      ("geometry", tsdf.integrate_blocks_donating), ("rehash", state_lib.grown_map),
+      ("block rehash", tsdf.grown_tsdf))}
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, free_space=True,
+                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
+  for frame in frames:
+    mapper.fuse(frame, CAMERA)
+  assert [g[0] for g in mapper.growths] == [1, 7]
+  assert [g[0] for g in mapper.geometry_growths] == [1]
+  grown = {name: fun._cache_size() - programs[name] for name, fun in (
+      ("prepare", fusion.prepare_frame), ("semantic", fusion.fuse_prepared_donating),
+      ("geometry", tsdf.integrate_blocks_donating), ("rehash", state_lib.grown_map),
+      ("block rehash", tsdf.grown_tsdf))}
+  assert grown == {"prepare": 1, "semantic": 3, "geometry": 2, "rehash": 0, "block rehash": 0}
+  fixed = jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
+                      free_space=True,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05,
+                                                  capacity=mapper.state.geometry.capacity))
+  for frame in frames:
+    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
+  _assert_same_maps(mapper.state, fixed)
+
+
+def test_the_host_rehash_equals_the_compiled_one():
+  rule = jf.rules.bayes()
+  frames = _frames(2)
+  state = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
+  for frame in frames:
+    state = jf.fuse_frame(state, frame, CAMERA, rule)
+  prior = state_lib.prior_row(state, rule)
+  host, lost = state_lib.grown_map_host(state, prior, capacity=2**14)
+  device, device_lost = state_lib.grown_map(state, prior, capacity=2**14)
+  assert lost == int(device_lost) == 0 and host.capacity == 2**14
+  assert int(host.num_occupied) == int(state.num_occupied)
+  _assert_same_maps(host.replace(geometry=None), device.replace(geometry=None))
+  _assert_same_maps(host.replace(geometry=None), state.replace(geometry=None))
+  blocks, blocks_lost = tsdf.grown_tsdf_host(state.geometry, capacity=2**11)
+  assert blocks_lost == 0 and blocks.capacity == 2**11
+  a, b = _blocks(blocks), _blocks(tsdf.grown_tsdf(state.geometry, capacity=2**11)[0])
+  assert a.keys() == b.keys() == _blocks(state.geometry).keys()
+  for key, (sdf, weight) in a.items():
+    np.testing.assert_array_equal(sdf, b[key][0])
+    np.testing.assert_array_equal(weight, b[key][1])
+  # Too small a table: the voxels that find no slot are counted (and grow_map refuses).
+  _, lost = state_lib.grown_map_host(state.replace(geometry=None), prior, capacity=2**12)
+  assert lost == 0
+  small = state.replace(max_probes=1, geometry=None)
+  _, lost = state_lib.grown_map_host(small, prior, capacity=2**12)
+  assert lost > 0
+
+
+def test_the_staged_halves_refuse_what_they_cannot_fuse():
+  rule = jf.rules.bayes()
+  frame = _frames(1)[0]
+  gated = jf.init_map(capacity=2**10, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**6,
+                                                  gate_semantics=True))
+  with pytest.raises(ValueError, match="gate_semantics"):
+    fusion.prepare_frame_unchecked(gated.voxel_size, frame, CAMERA, rule,
+                                   tsdf.settings_only(gated.geometry))
+  with pytest.raises(ValueError, match="geometry=None"):
+    fusion.fuse_prepared_unchecked(gated, None, frame, CAMERA, rule)
+  # A gated layer makes the Mapper fuse each frame as one fuse_frame, the same map.
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12,
+                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9,
+                                                 gate_semantics=True))
+  before = fusion.prepare_frame._cache_size()
+  for f in _frames(2):
+    mapper.fuse(f, CAMERA)
+  assert fusion.prepare_frame._cache_size() == before
+  fixed = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9,
+                                                  gate_semantics=True))
+  for f in _frames(2):
+    fixed = jf.fuse_frame(fixed, f, CAMERA, rule)
+  _assert_same_maps(mapper.state, fixed)
