@@ -134,13 +134,14 @@ def run_one(num_frames: int, height: int, width: int, factor: int) -> dict:
 
 
 def compile_costs(height: int = 120, width: int = 160, repeats: int = 3) -> list:
-  """What a growth must compile, program by program, at the walk's frame size and its first
+  """What a growth compiles, program by program, at the walk's frame size and its first
   capacities (2^16 slots, 2^12 blocks; fresh programs each time, medians of `repeats`
-  lower + compile): `fuse_frame` (both layers; the semantic layer alone), the rehashes
-  (`state.grown_map`, `tsdf.grown_tsdf`), the room check's lookup (`hashing.count_missing`),
-  and the smallest per-capacity program a `fuse_frame` split into a capacity-free half and a
-  table half would still compile (a frame's voxel keys found or placed and their rows gathered:
-  `hashing.insert` and a gather). Rows `{"program", "lower_s", "compile_s"}`."""
+  lower + compile): the programs a `Mapper` frame runs (the capacity-free half,
+  `fusion.prepare_frame`, compiled once; the semantic and geometry tables' halves, compiled
+  for each capacity), `fuse_frame` in one program (both layers; the semantic layer alone) for
+  comparison, and the programs that the CPU replaces by NumPy (the rehashes `state.grown_map`
+  and `tsdf.grown_tsdf`, the room check's lookup `hashing.count_missing`), which an
+  accelerator still compiles. Rows `{"program", "lower_s", "compile_s"}`."""
   import jax
   import jax.numpy as jnp
   import jaxfusion as jf
@@ -154,29 +155,36 @@ def compile_costs(height: int = 120, width: int = 160, repeats: int = 3) -> list
   full, plain = make(), make(False)
   n = height * width
   keys, active = jnp.zeros((n, 3), jnp.int32), jnp.ones(n, bool)
-
-  def table_half(state, keys, active):
-    placed = hashing.insert(state.keys, state.claims, keys, active, max_probes=state.max_probes)
-    rows = jax.tree.map(lambda r: r[jnp.minimum(placed.slots, state.capacity - 1)], state.rows)
-    return placed.table, placed.claims, rows
+  settings = tsdf.settings_only(full.geometry)
+  prepared = fusion.prepare_frame(full.voxel_size, frames[0], camera, rule, settings)
+  depth, pose = jnp.asarray(frames[0].depth), jnp.asarray(frames[0].T_world_cam)
 
   def fresh(fun, **static):
     # A new function each time, so that nothing traced or compiled before is reused.
     return lambda: jax.jit(lambda *a, **k: fun(*a, **k), static_argnames=tuple(static))
 
   programs = (
-      ("fuse_frame, both layers", fresh(fusion.fuse_frame_unchecked),
+      ("prepare_frame (the frame's half, compiled once)",
+       fresh(lambda v, f, s: fusion.prepare_frame_unchecked(v, f, camera, rule, s)),
+       (full.voxel_size, frames[0], settings), {}),
+      ("fuse_prepared (the semantic table's half)",
+       fresh(lambda st, p, f: fusion.fuse_prepared_unchecked(st, p, f, camera, rule)),
+       (plain, prepared, frames[0]), {}),
+      ("integrate_blocks (the geometry table's half)",
+       fresh(lambda g, b, d, t: tsdf.integrate_blocks_unchecked(g, b, d, t, camera)),
+       (full.geometry, prepared.blocks, depth, pose), {}),
+      ("fuse_frame, both layers in one program", fresh(fusion.fuse_frame_unchecked),
        (full, frames[0], camera, rule), {}),
       ("fuse_frame, semantic layer", fresh(fusion.fuse_frame_unchecked),
        (plain, frames[0], camera, rule), {}),
-      ("grown_map (semantic rehash)", fresh(state_lib.grown_map.__wrapped__, capacity=0),
+      ("grown_map (semantic rehash; NumPy on the CPU)",
+       fresh(state_lib.grown_map.__wrapped__, capacity=0),
        (plain, state_lib.prior_row(plain, rule)), {"capacity": 2**18}),
-      ("grown_tsdf (block rehash)", fresh(tsdf.grown_tsdf.__wrapped__, capacity=0),
-       (full.geometry,), {"capacity": 2**14}),
-      ("count_missing (room check)", fresh(hashing.count_missing.__wrapped__, max_probes=0),
+      ("grown_tsdf (block rehash; NumPy on the CPU)",
+       fresh(tsdf.grown_tsdf.__wrapped__, capacity=0), (full.geometry,), {"capacity": 2**14}),
+      ("count_missing (room check; NumPy on the CPU)",
+       fresh(hashing.count_missing.__wrapped__, max_probes=0),
        (plain.keys, keys, active), {"max_probes": plain.max_probes}),
-      ("insert + gather (a split fuse_frame's table half)", fresh(table_half),
-       (plain, keys, active), {}),
   )
   rows = []
   for name, make_jit, args, kwargs in programs:

@@ -210,7 +210,8 @@ class Mapper:
     if occupied + new > limit:
       self._grow_for(occupied + new)
 
-  def _ensure_geometry_room(self, depth, T_world_cam, camera, prepared=None) -> None:
+  def _ensure_geometry_room(self, depth, T_world_cam, camera, prepared=None,
+                            blocks=None) -> None:
     """Grows the geometry layer's block table before frames that could fill it past
     `grow_at`. The count of the blocks the frames add is skipped when even a call whose every
     ray sample found a new block stays under `grow_at`, or when four times the most blocks one
@@ -219,9 +220,10 @@ class Mapper:
     layer's block count: the first frame's, all new, set the safety margin but not the
     everyday one). The count is exact: of a `prepared` frame, the blocks it touches and, if
     those could overfill the table, the ones the table lacks (`_missing`); of a stack, every
-    ray sample looked up (`tsdf.count_new_blocks`)."""
+    ray sample looked up (`tsdf.count_new_blocks`). `blocks`: the layer's block count, when
+    the caller has read it."""
     geometry = self.state.geometry
-    blocks = int(geometry.num_blocks)
+    blocks = int(geometry.num_blocks) if blocks is None else blocks
     if self._blocks_before is not None:
       added = max(blocks - self._blocks_before, 0)
       self._recent_blocks.append(added)
@@ -286,9 +288,17 @@ class Mapper:
     then run each table's half."""
     check = fusion._check_inputs   # pylint: disable=protected-access
     check(self.state, frame, camera, self.rule, batch_dims=0, sample=True)
+    # On the device once: each of the three programs would copy host arrays in again.
+    frame = jax.device_put(frame)
+    # The tables' counts are read before the frame's preparation is dispatched: read after
+    # it, each waits for that program to run (about a millisecond a frame on 2 cores).
+    geometry = self.state.geometry
+    occupied, blocks = jax.device_get((self.state.num_occupied,
+                                       None if geometry is None else geometry.num_blocks))
     prepared = fusion.prepare_frame(self.state.voxel_size, frame, camera, self.rule,
                                     self._settings)
-    self._make_room(prepared, depth, np.asarray(frame.T_world_cam), camera)
+    self._make_room(prepared, int(occupied), None if blocks is None else int(blocks), depth,
+                    np.asarray(frame.T_world_cam), camera)
     geometry = self.state.geometry
     state = fusion.fuse_prepared_donating(self.state.replace(geometry=None), prepared, frame,
                                           camera, self.rule)
@@ -297,20 +307,19 @@ class Mapper:
                                                     frame.T_world_cam, camera)
     self.state = state.replace(geometry=geometry)
 
-  def _make_room(self, prepared: fusion.PreparedFrame, depth: np.ndarray,
-                 T_world_cam: np.ndarray, camera) -> None:
+  def _make_room(self, prepared: fusion.PreparedFrame, occupied: int, blocks: Optional[int],
+                 depth: np.ndarray, T_world_cam: np.ndarray, camera) -> None:
     """Grows a table before a prepared frame that could push it past `grow_at`. In turn, until
-    one leaves room: a host-side bound (every valid pixel, every ray sample a new voxel or
-    block; for the geometry layer also the recent frames' additions: no device work), the
+    one leaves room: a host-side bound (every pixel, every ray sample a new voxel or block;
+    for the geometry layer also the recent frames' additions: no device work), the
     voxels and blocks the frame touches (its preparation's counts), and the exact count of
-    those the table lacks (`_missing`, a small program per capacity)."""
+    those the table lacks (`_missing`, a small program per capacity). `occupied` and
+    `blocks` are the tables' counts before the frame."""
     if self.state.geometry is not None:
-      self._ensure_geometry_room(depth[None], T_world_cam[None], camera, prepared)
-    occupied = int(self.state.num_occupied)
+      self._ensure_geometry_room(depth[None], T_world_cam[None], camera, prepared, blocks)
     limit = self.grow_at * self.state.capacity
     groups = prepared.groups
-    if occupied + _valid_depth_count(depth) <= limit or (
-        occupied + int(groups.num_groups) <= limit):
+    if occupied + depth.size <= limit or occupied + int(groups.num_groups) <= limit:
       return
     first = groups.first_pixel[:prepared.counts.shape[0]]
     self._grow_for(occupied + _missing(self.state.keys, prepared.keys, first, groups.num_groups,

@@ -19,6 +19,7 @@ def test_growth_bench_records_a_walk_and_each_program_a_growth_compiles(tmp_path
   growth.main(["--compiles", "--quick", "--out", str(tmp_path)])
   record = json.loads((tmp_path / "growth_compiles_quick.json").read_text())
   names = [r["program"] for r in record["programs"]]
-  assert len(names) == 6 and names[0] == "fuse_frame, both layers"
+  assert len(names) == 8 and names[0].startswith("prepare_frame")
+  assert any(name.startswith("fuse_frame, both layers") for name in names)
   # Each program was compiled afresh (a program reused from memory takes no time at all).
   assert all(r["compile_s"] > 0.005 for r in record["programs"]), record
