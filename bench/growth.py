@@ -3,13 +3,14 @@
 A camera walks 2,000 frames down a 60 m corridor (2.4 m wide, 2.7 m high, rough walls; 120×160
 depth, K = 13, D+R) into a `Mapper` with a 5 cm geometry layer, both starting small (2^14 slots,
 2^10 blocks), so each layer grows several times. Each configuration of the `Mapper` (growth
-factor 2, 4 or 8) runs the same frames in a fresh process of its
-own (its programs compiled by itself), and is timed frame by frame beside the same frames fused
-into a map allocated at the final capacities from the start (compiled first): the flat
-baseline. Reported:
+factor 2, 4 or 8) runs the same frames in a fresh process of its own (its programs compiled
+by itself), timed frame by frame, in turns of 50 frames with the same frames fused into a map
+allocated at the final capacities from the start (compiled first; the capacities from a pilot
+run in a process of its own): the flat baseline, under the same load of the machine. Reported:
 
 * growth share: (time of the growing run − time of the fixed map) / time of the growing run,
-  the first frame (a compile in either run) left out of both — everything growth costs;
+  the first frame (the growing run's first compile) left out of both — everything growth
+  costs;
 * the frames that grew a layer: each one's time, and their excess over the median frame;
 * the worst frame apart from the first (the longest stall) and the first frame.
 
@@ -34,6 +35,7 @@ import time
 import numpy as np
 
 K = 13
+TURN = 50      # frames the growing and the fixed map fuse in turn (`run_one`)
 LENGTH, HALF_WIDTH, HEIGHT = 60.0, 1.2, 2.7
 # (name, growth factor, persistent compilation cache warmed by a first run)
 CONFIGS = (("factor 2, compile on the frame that grows", 2, False),
@@ -85,33 +87,56 @@ def _data(num_frames: int, height: int, width: int):
   return frames, camera
 
 
-def run_one(num_frames: int, height: int, width: int, factor: int) -> dict:
-  """One configuration, in this process: the growing run and the fixed-capacity baseline."""
-  import jax
+def _mapper(factor: int):
   import jaxfusion as jf
-  frames, camera = _data(num_frames, height, width)
   rule = jf.rules.robust()
   geometry = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**10)
-  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14, geometry=geometry,
-                     growth_factor=factor)
-  seconds = []
+  return jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14, geometry=geometry,
+                   growth_factor=factor), rule
+
+
+def final_capacities(num_frames: int, height: int, width: int, factor: int) -> tuple:
+  """`(slots, blocks)` a growing `Mapper` ends the walk with (a pilot run, untimed)."""
+  frames, camera = _data(num_frames, height, width)
+  mapper, _ = _mapper(factor)
   for frame in frames:
-    start = time.perf_counter()
-    jax.block_until_ready(mapper.fuse(frame, camera).rows)
-    seconds.append(time.perf_counter() - start)
-  grew = sorted({t for t, _, _ in mapper.growths} | {t for t, _, _ in mapper.geometry_growths})
-  # The fixed baseline: the final capacities from the start, compiled before timing.
-  config = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=mapper.state.geometry.capacity)
+    mapper.fuse(frame, camera)
+  return mapper.capacity, mapper.state.geometry.capacity
+
+
+def run_one(num_frames: int, height: int, width: int, factor: int, final=None) -> dict:
+  """One configuration, in this process: the growing run and the fixed-capacity baseline of
+  `final = (slots, blocks)` (default: a pilot run's, `final_capacities`), in turns of `TURN`
+  frames — frames t … t + TURN − 1 into the growing map, then into the fixed one — so that
+  both see the same load of the machine (its speed drifts by 20 % over minutes) and each
+  runs warm (frame by frame in turn, each frame finds the caches full of the other map's).
+  The fixed map's program is compiled before, the growing map's in the run, as a user's."""
+  import jax
+  import jaxfusion as jf
+  if final is None:
+    final = final_capacities(num_frames, height, width, factor)
+  frames, camera = _data(num_frames, height, width)
+  mapper, rule = _mapper(factor)
+  config = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=int(final[1]))
   def fresh():
-    return jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
+    return jf.init_map(capacity=int(final[0]), num_classes=K, voxel_size=0.05, rule=rule,
                        geometry=config)
-  jax.block_until_ready(jf.fuse_frame(fresh(), frames[0], camera, rule).rows)
-  state, fixed = fresh(), []
-  for frame in frames:
-    start = time.perf_counter()
-    state = jf.fuse_frame(state, frame, camera, rule)
-    jax.block_until_ready(state.rows)
-    fixed.append(time.perf_counter() - start)
+  jax.block_until_ready(jf.fuse_frame(fresh(), frames[0], camera, rule))
+  state, seconds, fixed = fresh(), [], []
+  for turn in range(0, len(frames), TURN):
+    for frame in frames[turn:turn + TURN]:
+      start = time.perf_counter()
+      jax.block_until_ready(mapper.fuse(frame, camera))
+      seconds.append(time.perf_counter() - start)
+    for frame in frames[turn:turn + TURN]:
+      start = time.perf_counter()
+      state = jf.fuse_frame(state, frame, camera, rule)
+      jax.block_until_ready(state)
+      fixed.append(time.perf_counter() - start)
+  grew = sorted({t for t, _, _ in mapper.growths} | {t for t, _, _ in mapper.geometry_growths})
+  if (mapper.capacity, mapper.state.geometry.capacity) != tuple(final):
+    raise RuntimeError(f"the walk ended at {mapper.capacity} slots and "
+                       f"{mapper.state.geometry.capacity} blocks, not the pilot's {final}")
   seconds, fixed = np.array(seconds), np.array(fixed)
   median = float(np.median(seconds[1:]))
   later = [t for t in grew if t > 0]
@@ -228,6 +253,8 @@ def main(argv=None) -> None:
   parser.add_argument("--quick", action="store_true", help="300 frames at 60×80")
   parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"))
   parser.add_argument("--one", nargs=4, type=int, help=argparse.SUPPRESS)   # a child run
+  parser.add_argument("--final", nargs=2, type=int, help=argparse.SUPPRESS)  # its baseline
+  parser.add_argument("--pilot", action="store_true", help=argparse.SUPPRESS)
   parser.add_argument("--compiles", action="store_true",
                       help="only what a growth compiles, program by program "
                            "(writes growth_compiles.json)")
@@ -249,7 +276,10 @@ def main(argv=None) -> None:
       from jaxfusion.lab import compile_cache   # the `jaxfusion` commands' cache, as they use it
       compile_cache.enable()
     frames, height, width, factor = args.one
-    print(json.dumps(run_one(frames, height, width, factor)))
+    if args.pilot:
+      print(json.dumps(final_capacities(frames, height, width, factor)))
+    else:
+      print(json.dumps(run_one(frames, height, width, factor, args.final)))
     return
   frames, height, width = (300, 60, 80) if args.quick else (2000, 120, 160)
   runs = []
@@ -259,12 +289,16 @@ def main(argv=None) -> None:
       env = dict(os.environ)
       if cached:
         env.update(JAXFUSION_COMPILE_CACHE=cache, BENCH_GROWTH_CACHE="1")
-      for _ in range(2 if cached else 1):      # a cached run is timed on its second go
-        child = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
-                                str(height), str(width), str(factor)],
-                               capture_output=True, text=True, check=True, env=env,
-                               cwd=pathlib.Path(__file__).parent.parent)
-    runs.append(json.loads(child.stdout.strip().splitlines()[-1]))
+      def child(*extra):
+        done = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
+                               str(height), str(width), str(factor), *extra],
+                              capture_output=True, text=True, check=True, env=env,
+                              cwd=pathlib.Path(__file__).parent.parent)
+        return json.loads(done.stdout.strip().splitlines()[-1])
+      # A pilot learns the final capacities of the fixed baseline (and, for the cached
+      # configuration, is the first run that fills the cache); the timed run is the second.
+      final = child("--pilot")
+      runs.append(child("--final", *map(str, final)))
     runs[-1]["persistent_cache"] = cached
     print(f"{name}: {runs[-1]['fuse_s']:.1f} s", file=sys.stderr)
   result = {"frames": frames, "height": height, "width": width, "runs": runs}

@@ -379,6 +379,8 @@ class PreparedFrame(NamedTuple):
   groups: PixelGroups                   # valid pixels per voxel, first_pixel padded to chunks
   counts: jax.Array                     # (P,) float32 valid pixels of each group
   blocks: Optional[tsdf.FrameBlocks]    # the geometry layer's blocks, or None
+  frame: Frame                          # the frame itself, as device arrays (for the halves:
+                                        # a frame of NumPy arrays is copied in only once)
 
 
 def prepare_frame_unchecked(voxel_size, frame: Frame, camera: camera_lib.Camera,
@@ -405,7 +407,7 @@ def prepare_frame_unchecked(voxel_size, frame: Frame, camera: camera_lib.Camera,
   px = _frame_pixels(voxel_size, frame, camera, rule, None)
   groups, counts, _ = _pixel_groups(px.keys, px.valid)
   blocks = None if geometry is None else tsdf.frame_blocks(geometry, px.depth, px.pose, camera)
-  return PreparedFrame(px.keys, groups, counts, blocks)
+  return PreparedFrame(px.keys, groups, counts, blocks, frame)
 
 
 def fuse_prepared_unchecked(state: MapState, prepared: PreparedFrame, frame: Frame,

@@ -288,8 +288,6 @@ class Mapper:
     then run each table's half."""
     check = fusion._check_inputs   # pylint: disable=protected-access
     check(self.state, frame, camera, self.rule, batch_dims=0, sample=True)
-    # On the device once: each of the three programs would copy host arrays in again.
-    frame = jax.device_put(frame)
     # The tables' counts are read before the frame's preparation is dispatched: read after
     # it, each waits for that program to run (about a millisecond a frame on 2 cores).
     geometry = self.state.geometry
@@ -299,7 +297,7 @@ class Mapper:
                                     self._settings)
     self._make_room(prepared, int(occupied), None if blocks is None else int(blocks), depth,
                     np.asarray(frame.T_world_cam), camera)
-    geometry = self.state.geometry
+    geometry, frame = self.state.geometry, prepared.frame
     state = fusion.fuse_prepared_donating(self.state.replace(geometry=None), prepared, frame,
                                           camera, self.rule)
     if geometry is not None:
