@@ -235,13 +235,16 @@ def table(result: dict) -> str:
       f"{first['voxels']:,} voxels ({first['dropped']} dropped) and {first['blocks']:,} blocks.",
       "",
       "| Mapper | growths (semantic + geometry) | fuse s (fixed map s) | growth share | "
+      "growth frames' excess, % of fuse | median frame ms (fixed map) | "
       "growth frames, s each | worst other frame s | first frame s |",
-      "|---|---|---|---|---|---|---|",
+      "|---|---|---|---|---|---|---|---|---|",
   ]
   for name, r in zip((c[0] for c in CONFIGS), result["runs"]):
     lines.append(
         f"| {name} | {len(r['semantic_growths'])} + {len(r['geometry_growths'])} | "
         f"{r['fuse_s']:.1f} ({r['fixed_s']:.1f}) | {100 * r['growth_share']:.0f} % | "
+        f"{100 * r['growth_excess_s'] / r['fuse_s']:.0f} % | "
+        f"{r['median_ms']:.1f} ({r['fixed_median_ms']:.1f}) | "
         + ", ".join(f"{g['s']:.2f}" for g in r["growth_frames"])
         + f" | {r['worst_frame_s']:.2f} (frame {r['worst_frame']}) | {r['first_frame_s']:.1f} |")
   return "\n".join(lines)

@@ -188,6 +188,7 @@ class Mapper:
     layer = self.state.geometry
     self._staged = layer is None or not layer.gate_semantics
     self._settings = None if layer is None else tsdf_lib.settings_only(layer)
+    self._camera = (None, None)   # the last Camera fused and its device copy
     self.growths = []
     self.geometry_growths = []
     self.frames_fused = 0
@@ -293,6 +294,10 @@ class Mapper:
     geometry = self.state.geometry
     occupied, blocks = jax.device_get((self.state.num_occupied,
                                        None if geometry is None else geometry.num_blocks))
+    if camera is not self._camera[0]:
+      # Its scalars as device arrays once, not converted by each of three programs per frame.
+      self._camera = (camera, jax.tree.map(jnp.float32, camera))
+    camera = self._camera[1]
     prepared = fusion.prepare_frame(self.state.voxel_size, frame, camera, self.rule,
                                     self._settings)
     self._make_room(prepared, int(occupied), None if blocks is None else int(blocks), depth,
