@@ -131,3 +131,18 @@ def test_the_staged_halves_refuse_what_they_cannot_fuse():
   assert (fusion.prepare_frame._cache_size(), fusion.fuse_frame_donating._cache_size()) == (
       before[0], before[1] + 1)
   assert int(mapper.state.num_occupied) > 0 and int(mapper.state.geometry.num_blocks) > 0
+
+
+def test_a_context_rule_with_colour_fuses_through_the_staged_frame_as_fuse_frame():
+  """A rule that reads per-pixel context (here from the colour image, docs/equations.md §2.5)
+  gets it in the semantic half from the prepared frame's arrays: the same map."""
+  rule = jf.rules.learned(context=("depth_edge", "luminance"))
+  rng = np.random.default_rng(3)
+  frames = [f._replace(rgb=rng.integers(0, 256, (30, 40, 3), dtype=np.uint8))
+            for f in _frames(2, seed=3)]
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12)
+  fixed = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule)
+  for frame in frames:
+    mapper.fuse(frame, CAMERA)
+    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
+  _assert_same_maps(mapper.state, fixed)
