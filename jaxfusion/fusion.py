@@ -410,16 +410,16 @@ def prepare_frame_unchecked(voxel_size, frame: Frame, camera: camera_lib.Camera,
   return PreparedFrame(px.keys, groups, counts, blocks, frame)
 
 
-def fuse_prepared_unchecked(state: MapState, prepared: PreparedFrame, frame: Frame,
-                            camera: camera_lib.Camera, rule: rules_base.FusionRule) -> MapState:
+def fuse_prepared_unchecked(state: MapState, prepared: PreparedFrame, camera: camera_lib.Camera,
+                            rule: rules_base.FusionRule) -> MapState:
   """The semantic layer's half of `fuse_frame` that reads the map, given the frame's
   `prepare_frame_unchecked` (pure, no checks).
 
   Args:
     state: the map without its geometry layer (`state.replace(geometry=None)`: the layer's
       arrays would tie the program to its capacity; `tsdf.integrate_blocks_unchecked` fuses it).
-    prepared: the frame's PreparedFrame at `state.voxel_size`.
-    frame, camera, rule: as for `fuse_frame`, the frame the one prepared.
+    prepared: the frame's PreparedFrame at `state.voxel_size` (it carries the frame).
+    camera, rule: as for `fuse_frame`.
 
   Returns:
     The new MapState (geometry None): equal to `fuse_frame`'s semantic layer.
@@ -427,7 +427,8 @@ def fuse_prepared_unchecked(state: MapState, prepared: PreparedFrame, frame: Fra
   if state.geometry is not None:
     raise ValueError("fuse_prepared_unchecked fuses the semantic layer: pass "
                      "state.replace(geometry=None) and integrate the geometry layer apart")
-  px = _frame_pixels(state.voxel_size, frame, camera, rule, None)._replace(keys=prepared.keys)
+  px = _frame_pixels(state.voxel_size, prepared.frame, camera, rule, None)._replace(
+      keys=prepared.keys)
   chunk = min(_CHUNK, prepared.keys.shape[0])
   return _fuse_groups(state, px, prepared.groups, prepared.counts, chunk, camera, rule, None)
 

@@ -48,6 +48,16 @@ def hash_keys_host(keys: np.ndarray) -> np.ndarray:
   return fmix32(k[:, 0] * _PRIME_X ^ k[:, 1] * _PRIME_Y ^ k[:, 2] * _PRIME_Z)
 
 
+def _home_slots_host(keys: np.ndarray, capacity: int) -> np.ndarray:
+  return (hash_keys_host(keys) & np.uint32(capacity - 1)).astype(np.int64)
+
+
+def on_host(x: jax.Array) -> bool:
+  """True when the array lives in host memory (JAX's CPU devices), where NumPy reads it in
+  place: the host twins below then serve a growing map with nothing to compile."""
+  return all(device.platform == "cpu" for device in x.devices())
+
+
 def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int):
   """Places distinct keys into an empty table of `capacity` slots, in NumPy on the host: the
   rehash of a growing map without a program compiled for its capacity.
@@ -67,7 +77,7 @@ def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int):
   """
   keys = np.ascontiguousarray(keys, np.int32).reshape(-1, 3)
   table = np.full((capacity, 3), EMPTY, np.int32)
-  home = (hash_keys_host(keys) & np.uint32(capacity - 1)).astype(np.int64)
+  home = _home_slots_host(keys, capacity)
   slots = np.zeros(keys.shape[0], np.int32)
   pending = np.arange(keys.shape[0])
   taken = np.zeros(capacity, bool)
@@ -97,7 +107,7 @@ def lookup_host(table: np.ndarray, keys: np.ndarray, *, max_probes: int):
   table = np.asarray(table)
   keys = np.ascontiguousarray(keys, np.int32).reshape(-1, 3)
   capacity = table.shape[0]
-  home = (hash_keys_host(keys) & np.uint32(capacity - 1)).astype(np.int64)
+  home = _home_slots_host(keys, capacity)
   slots = np.zeros(keys.shape[0], np.int32)
   found = np.zeros(keys.shape[0], bool)
   pending = np.arange(keys.shape[0])
@@ -111,6 +121,20 @@ def lookup_host(table: np.ndarray, keys: np.ndarray, *, max_probes: int):
     slots[pending[match]] = slot[match]
     pending = pending[~match & (stored[:, 0] != EMPTY)]
   return slots, found
+
+
+def rehash_host(table: np.ndarray, capacity: int, *, max_probes: int):
+  """A table `(C, 3) int32` (NumPy, or a JAX array in host memory, read in place) rehashed
+  into `capacity` slots by `insert_host`, its stored keys offered in slot order.
+
+  Returns:
+    `(new_table (C', 3) int32, src, dest, lost)`: the key of old slot `src[i]` went to new slot
+    `dest[i]` (`(M,) int` each), and `lost` keys found no slot within `max_probes`.
+  """
+  table = np.asarray(table)
+  old = np.flatnonzero(table[:, 0] != EMPTY)
+  new_table, slots, found = insert_host(capacity, table[old], max_probes=max_probes)
+  return new_table, old[found], slots[found], int(np.count_nonzero(~found))
 
 
 def empty_table(capacity: int) -> jax.Array:

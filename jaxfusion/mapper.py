@@ -25,7 +25,6 @@ Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
 import collections
-import functools
 from typing import Optional
 
 import jax
@@ -81,26 +80,19 @@ def new_voxel_count(state: state_lib.MapState, depth: jax.Array, T_world_cam: ja
   return hashing.count_missing(state.keys, keys, is_group, max_probes=state.max_probes)
 
 
-@functools.partial(jax.jit, static_argnames=("max_probes",))
-def _missing_on_device(table: jax.Array, keys: jax.Array, first: jax.Array,
-                       num_groups: jax.Array, *, max_probes: int) -> jax.Array:
-  is_group = jnp.arange(first.shape[0]) < num_groups
-  _, found = hashing.lookup(table, keys[first], max_probes=max_probes)
-  return jnp.sum(is_group & ~found, dtype=jnp.int32)
-
-
 def _missing(table: jax.Array, keys: jax.Array, first: jax.Array, num_groups: jax.Array, *,
              max_probes: int) -> int:
   """How many of the groups `keys[first[g]]`, g < num_groups, the table `(C, 3)` lacks: a
   prepared frame's exact count of new voxels or blocks. A table in host memory (the CPU) is
   read in place by NumPy (`hashing.lookup_host`: nothing to compile for a new capacity);
-  elsewhere it is a small program per capacity."""
-  if state_lib.on_host(table):
+  elsewhere it is `hashing.count_missing`, a small program per capacity."""
+  if hashing.on_host(table):
     count = int(num_groups)
     rows = np.asarray(first)[:count]
     _, found = hashing.lookup_host(table, np.asarray(keys)[rows], max_probes=max_probes)
     return int(count - np.count_nonzero(found))
-  return int(_missing_on_device(table, keys, first, num_groups, max_probes=max_probes))
+  is_group = jnp.arange(first.shape[0]) < num_groups
+  return int(hashing.count_missing(table, keys[first], is_group, max_probes=max_probes))
 
 
 # How many of the latest calls the geometry layer's cheap room check remembers, and the load
@@ -300,18 +292,17 @@ class Mapper:
     camera = self._camera[1]
     prepared = fusion.prepare_frame(self.state.voxel_size, frame, camera, self.rule,
                                     self._settings)
-    self._make_room(prepared, int(occupied), None if blocks is None else int(blocks), depth,
-                    np.asarray(frame.T_world_cam), camera)
+    self._make_room(prepared, int(occupied), None if blocks is None else int(blocks), depth)
     geometry, frame = self.state.geometry, prepared.frame
-    state = fusion.fuse_prepared_donating(self.state.replace(geometry=None), prepared, frame,
-                                          camera, self.rule)
+    state = fusion.fuse_prepared_donating(self.state.replace(geometry=None), prepared, camera,
+                                          self.rule)
     if geometry is not None:
       geometry = tsdf_lib.integrate_blocks_donating(geometry, prepared.blocks, frame.depth,
                                                     frame.T_world_cam, camera)
     self.state = state.replace(geometry=geometry)
 
   def _make_room(self, prepared: fusion.PreparedFrame, occupied: int, blocks: Optional[int],
-                 depth: np.ndarray, T_world_cam: np.ndarray, camera) -> None:
+                 depth: np.ndarray) -> None:
     """Grows a table before a prepared frame that could push it past `grow_at`. In turn, until
     one leaves room: a host-side bound (every pixel, every ray sample a new voxel or block;
     for the geometry layer also the recent frames' additions: no device work), the
@@ -319,7 +310,8 @@ class Mapper:
     those the table lacks (`_missing`, a small program per capacity). `occupied` and
     `blocks` are the tables' counts before the frame."""
     if self.state.geometry is not None:
-      self._ensure_geometry_room(depth[None], T_world_cam[None], camera, prepared, blocks)
+      # The pose and camera serve the stack's count only; a prepared frame has its own.
+      self._ensure_geometry_room(depth[None], None, None, prepared, blocks)
     limit = self.grow_at * self.state.capacity
     groups = prepared.groups
     if occupied + depth.size <= limit or occupied + int(groups.num_groups) <= limit:

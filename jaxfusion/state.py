@@ -254,15 +254,9 @@ def grown_map(state: MapState, prior, *, capacity: int):
                        claims=jnp.zeros(capacity, jnp.int32)), lost
 
 
-def on_host(x: jax.Array) -> bool:
-  """True when the array lives in host memory (JAX's CPU devices), where NumPy reads it in
-  place: a growth is then rehashed by NumPy (`grown_map_host`), with nothing to compile."""
-  return all(device.platform == "cpu" for device in x.devices())
-
-
 def grown_map_host(state: MapState, prior, *, capacity: int):
   """`grown_map` in NumPy on the host: the same voxels, rows, hits and log-odds in a table of
-  `capacity` slots placed by `hashing.insert_host`, returned as device arrays. It compiles
+  `capacity` slots placed by `hashing.rehash_host`, returned as device arrays. It compiles
   nothing, so a growing map on the CPU pays no compile for its rehash (bench/RESULTS.md, "A
   map that grows over a long walk"); the slots a voxel lands in may differ from `grown_map`'s
   where keys collide, the map read out does not.
@@ -270,10 +264,8 @@ def grown_map_host(state: MapState, prior, *, capacity: int):
   Returns:
     `(grown, lost)` as `grown_map`: the map of C' slots and the voxels that found no slot.
   """
-  keys = np.asarray(state.keys)
-  old = np.flatnonzero(keys[:, 0] != hashing.EMPTY)
-  table, slots, found = hashing.insert_host(capacity, keys[old], max_probes=state.max_probes)
-  src, dest = old[found], slots[found]
+  table, src, dest, lost = hashing.rehash_host(state.keys, capacity,
+                                               max_probes=state.max_probes)
 
   def move(old_values, fill):
     old_values = np.asarray(old_values)
@@ -288,7 +280,7 @@ def grown_map_host(state: MapState, prior, *, capacity: int):
     free = free.replace(log_odds=move(free.log_odds, 0.0))
   grown = state.replace(keys=jnp.asarray(table), rows=rows, hits=move(state.hits, 0),
                         free_space=free, claims=jnp.asarray(np.zeros(capacity, np.int32)))
-  return grown, int(np.count_nonzero(~found))
+  return grown, lost
 
 
 def prior_row(state: MapState, rule: Optional[rules_base.FusionRule] = None):
@@ -340,7 +332,7 @@ def grow_map(state: MapState, capacity: int, *,
     raise ValueError(f"grow_map cannot shrink a map: capacity {capacity} < {state.capacity}")
   if rule is not None and rule.name != state.rule_name:
     raise ValueError(f"rule {rule.name!r} does not match the map's {state.rule_name!r}")
-  if on_host(state.keys):
+  if hashing.on_host(state.keys):
     grown, lost = grown_map_host(state, prior_row(state, rule), capacity=capacity)
   else:
     grown, lost = grown_map(state, prior_row(state, rule), capacity=capacity)

@@ -792,12 +792,10 @@ def grown_tsdf(state: TSDFState, *, capacity: int):
 
 
 def grown_tsdf_host(state: TSDFState, *, capacity: int):
-  """`grown_tsdf` in NumPy on the host (`hashing.insert_host`; what `grow_tsdf` runs on the
+  """`grown_tsdf` in NumPy on the host (`hashing.rehash_host`; what `grow_tsdf` runs on the
   CPU, where it compiles nothing): `(grown, lost)` as `grown_tsdf`."""
-  keys = np.asarray(state.block_keys)
-  old = np.flatnonzero(keys[:, 0] != hashing.EMPTY)
-  table, slots, found = hashing.insert_host(capacity, keys[old], max_probes=state.max_probes)
-  src, dest = old[found], slots[found]
+  table, src, dest, lost = hashing.rehash_host(state.block_keys, capacity,
+                                               max_probes=state.max_probes)
 
   def move(values):
     values = np.asarray(values)
@@ -808,7 +806,7 @@ def grown_tsdf_host(state: TSDFState, *, capacity: int):
   grown = state.replace(block_keys=jnp.asarray(table),
                         claims=jnp.asarray(np.zeros(capacity, np.int32)),
                         sdf=move(state.sdf), weight=move(state.weight))
-  return grown, int(np.count_nonzero(~found))
+  return grown, lost
 
 
 def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
@@ -834,7 +832,7 @@ def grow_tsdf(state: TSDFState, capacity: int) -> TSDFState:
     raise ValueError(f"capacity must be a power of two ≤ 2**24; got {capacity!r}")
   if capacity < state.capacity:
     raise ValueError(f"grow_tsdf cannot shrink a layer: capacity {capacity} < {state.capacity}")
-  if all(device.platform == "cpu" for device in state.block_keys.devices()):   # host memory
+  if hashing.on_host(state.block_keys):
     grown, lost = grown_tsdf_host(state, capacity=capacity)
   else:
     grown, lost = grown_tsdf(state, capacity=capacity)

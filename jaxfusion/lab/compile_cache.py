@@ -19,7 +19,8 @@ from typing import Mapping, Optional
 
 OFF = ("off", "0", "no", "false", "none")
 MAX_BYTES = 4 * 2**30            # least recently used entries go beyond this size
-MIN_COMPILE_SECONDS = 0.1        # faster compiles are not worth a file (a Mapper table half: ~0.5 s)
+# Programs that compile faster are not worth a file (a Mapper table half takes ~0.5 s).
+MIN_COMPILE_SECONDS = 0.1
 
 
 def cache_dir(environ: Mapping[str, str]) -> Optional[pathlib.Path]:

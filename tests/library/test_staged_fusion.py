@@ -121,7 +121,7 @@ def test_the_staged_halves_refuse_what_they_cannot_fuse():
     fusion.prepare_frame_unchecked(gated.voxel_size, frame, CAMERA, rule,
                                    tsdf.settings_only(gated.geometry))
   with pytest.raises(ValueError, match="geometry=None"):
-    fusion.fuse_prepared_unchecked(gated, None, frame, CAMERA, rule)
+    fusion.fuse_prepared_unchecked(gated, None, CAMERA, rule)
   # A gated layer makes the Mapper fuse each frame as one fuse_frame.
   mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**10,
                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9,
