@@ -272,14 +272,15 @@ def grown_map_host(state: MapState, prior, *, capacity: int):
     new = np.empty((capacity,) + old_values.shape[1:], old_values.dtype)
     new[...] = np.asarray(fill, old_values.dtype)
     new[dest] = old_values[src]
-    return jnp.asarray(new)
+    return hashing.to_device_of(new, state.keys)
 
   rows = jax.tree.map(move, state.rows, prior)
   free = state.free_space
   if free is not None:
     free = free.replace(log_odds=move(free.log_odds, 0.0))
-  grown = state.replace(keys=jnp.asarray(table), rows=rows, hits=move(state.hits, 0),
-                        free_space=free, claims=jnp.asarray(np.zeros(capacity, np.int32)))
+  grown = state.replace(keys=hashing.to_device_of(table, state.keys), rows=rows,
+                        hits=move(state.hits, 0), free_space=free,
+                        claims=hashing.to_device_of(np.zeros(capacity, np.int32), state.keys))
   return grown, lost
 
 

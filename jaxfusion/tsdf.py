@@ -801,10 +801,11 @@ def grown_tsdf_host(state: TSDFState, *, capacity: int):
     values = np.asarray(values)
     new = np.zeros((capacity,) + values.shape[1:], values.dtype)
     new[dest] = values[src]
-    return jnp.asarray(new)
+    return hashing.to_device_of(new, state.block_keys)
 
-  grown = state.replace(block_keys=jnp.asarray(table),
-                        claims=jnp.asarray(np.zeros(capacity, np.int32)),
+  grown = state.replace(block_keys=hashing.to_device_of(table, state.block_keys),
+                        claims=hashing.to_device_of(np.zeros(capacity, np.int32),
+                                                    state.block_keys),
                         sdf=move(state.sdf), weight=move(state.weight))
   return grown, lost
 
