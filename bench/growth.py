@@ -236,7 +236,7 @@ def table(result: dict) -> str:
       "",
       "| Mapper | growths (semantic + geometry) | fuse s (fixed map s) | growth share | "
       "growth frames' excess, % of fuse | median frame ms (fixed map) | "
-      "growth frames, s each | worst other frame s | first frame s |",
+      "growth frames, s each | worst frame s | first frame s |",
       "|---|---|---|---|---|---|---|---|---|",
   ]
   for name, r in zip((c[0] for c in CONFIGS), result["runs"]):
