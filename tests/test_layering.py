@@ -113,11 +113,34 @@ def test_the_scan_sees_function_level_and_relative_imports(tmp_path):
   assert "jaxfusion.lab" in imports and "jaxfusion.tune" in imports
 
 
-def test_import_jaxfusion_loads_no_command_line_nor_heavy_module():
-  code = ("import sys, jaxfusion\n"
-          "print('\\n'.join(sorted(m for m in sys.modules)))")
-  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       check=True, timeout=300, cwd=ROOT).stdout.split()
+def _modules_after(code: str) -> list:
+  code += "\nimport sys\nprint('\\n'.join(sorted(m for m in sys.modules)))"
+  return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                        check=True, timeout=300, cwd=ROOT).stdout.split()
+
+
+def test_the_library_loads_no_command_line_nor_heavy_module():
+  # Every public name loaded (the package loads them lazily).
+  out = _modules_after("import jaxfusion\nfor name in jaxfusion.__all__: getattr(jaxfusion, name)")
   loaded = [m for m in out if any(m == h or m.startswith(h + ".") for h in HEAVY)]
   assert not loaded, loaded
   assert "jaxfusion.datasets" in out and "jaxfusion.tune" in out   # the library itself is there
+  assert "jax" in out
+
+
+def test_import_jaxfusion_loads_no_jax_until_a_name_is_used():
+  # So that a command re-executes itself (huge pages) before JAX is loaded, not after.
+  out = _modules_after("import jaxfusion\nfrom jaxfusion.lab import cli, hugepages")
+  assert "jax" not in out and "numpy" not in out, [m for m in out if "jax" in m]
+  out = _modules_after("import jaxfusion\njaxfusion.Mapper")
+  assert "jax" in out and "jaxfusion.mapper" in out and "jaxfusion.datasets" not in out
+
+
+def test_lazy_names_are_the_modules_own():
+  import jaxfusion                                   # pylint: disable=import-outside-toplevel
+  from jaxfusion import fusion, tsdf                 # pylint: disable=import-outside-toplevel
+  assert jaxfusion.fuse_frame is fusion.fuse_frame and jaxfusion.tsdf is tsdf
+  assert jaxfusion.hashing.EMPTY == jaxfusion.EMPTY  # a submodule not re-exported
+  assert set(jaxfusion.__all__) <= set(dir(jaxfusion))
+  with pytest.raises(AttributeError, match="no attribute 'fuse_frames'"):
+    jaxfusion.fuse_frames                            # pylint: disable=pointless-statement

@@ -9,7 +9,8 @@ arrays with glibc's `malloc`, and glibc (≥ 2.35) marks its large allocations f
 when the `glibc.malloc.hugetlb=1` tunable is set, which the kernel honours in its default
 `madvise` mode. The tunable is read once, when a process starts: a command started without it
 re-executes itself once with it added to `GLIBC_TUNABLES` (`reexec`), before anything is
-allocated.
+allocated and before JAX is imported: `import jaxfusion` loads its names lazily, and this module
+and `lab.cli` import neither JAX nor NumPy, so the first process is only Python's start.
 
 * `JAXFUSION_HUGEPAGES=off` (or `0`, `no`, `false`): no re-execution, the process as started;
 * a `GLIBC_TUNABLES` that already names `glibc.malloc.hugetlb`: left as it is;
