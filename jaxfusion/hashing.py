@@ -69,7 +69,7 @@ def to_device_of(values: np.ndarray, like: jax.Array) -> jax.Array:
   return jax.device_put(values)
 
 
-def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int):
+def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int, with_table: bool = True):
   """Places distinct keys into an empty table of `capacity` slots, in NumPy on the host: the
   rehash of a growing map without a program compiled for its capacity.
 
@@ -82,12 +82,14 @@ def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int):
     capacity: C, a power of two.
     keys: `(N, 3) int32` distinct keys.
     max_probes: the table's probe bound.
+    with_table: False: only the slots (the table is None), for a caller that builds the table
+      elsewhere (`moved_rows`).
 
   Returns:
     `(table (C, 3) int32, slots (N,) int32, found (N,) bool)`: keys not found did not fit.
   """
   keys = np.ascontiguousarray(keys, np.int32).reshape(-1, 3)
-  table = np.full((capacity, 3), EMPTY, np.int32)
+  table = np.full((capacity, 3), EMPTY, np.int32) if with_table else None
   home = _home_slots_host(keys, capacity)
   slots = np.zeros(keys.shape[0], np.int32)
   pending = np.arange(keys.shape[0])
@@ -100,7 +102,8 @@ def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int):
     # One winner per free slot: the first pending key that looks at it.
     _, first = np.unique(slot[free], return_index=True)
     won = np.flatnonzero(free)[first]
-    table[slot[won]] = keys[pending[won]]
+    if with_table:
+      table[slot[won]] = keys[pending[won]]
     taken[slot[won]] = True
     slots[pending[won]] = slot[won]
     placed = np.zeros(pending.size, bool)
@@ -134,18 +137,62 @@ def lookup_host(table: np.ndarray, keys: np.ndarray, *, max_probes: int):
   return slots, found
 
 
-def rehash_host(table: np.ndarray, capacity: int, *, max_probes: int):
+def rehash_host(table: np.ndarray, capacity: int, *, max_probes: int, with_table: bool = True):
   """A table `(C, 3) int32` (NumPy, or a JAX array in host memory, read in place) rehashed
   into `capacity` slots by `insert_host`, its stored keys offered in slot order.
 
   Returns:
     `(new_table (C', 3) int32, src, dest, lost)`: the key of old slot `src[i]` went to new slot
-    `dest[i]` (`(M,) int` each), and `lost` keys found no slot within `max_probes`.
+    `dest[i]` (`(M,) int` each), and `lost` keys found no slot within `max_probes`; `new_table`
+    is None with `with_table=False`.
   """
   table = np.asarray(table)
   old = np.flatnonzero(table[:, 0] != EMPTY)
-  new_table, slots, found = insert_host(capacity, table[old], max_probes=max_probes)
+  new_table, slots, found = insert_host(capacity, table[old], max_probes=max_probes,
+                                        with_table=with_table)
   return new_table, old[found], slots[found], int(np.count_nonzero(~found))
+
+
+# From this many bytes of grown arrays on, a host rehash moves the rows with one compiled
+# program (`moved_rows`) instead of NumPy: NumPy's new arrays are copied again when handed to
+# XLA, and at these sizes (fresh pages, huge ones where the commands ask for them) writing the
+# memory twice costs more than the ~0.1 s compile (bench/RESULTS.md, "A building-sized map").
+HOST_MOVE_BYTES = 2**28
+
+
+def moves_on_device(capacity: int, old_arrays) -> bool:
+  """Whether a host rehash into `capacity` slots of the `(C, ...)` arrays `old_arrays` (a
+  pytree) should move them with `moved_rows`: when the grown arrays hold `HOST_MOVE_BYTES` or
+  more."""
+  leaves = jax.tree.leaves(old_arrays)
+  row_bytes = sum(x.dtype.itemsize * int(np.prod(x.shape[1:], dtype=np.int64)) for x in leaves)
+  return capacity * row_bytes >= HOST_MOVE_BYTES
+
+
+def slot_map(old_capacity: int, capacity: int, src: np.ndarray, dest: np.ndarray) -> np.ndarray:
+  """`(C,) int32`: the new slot of each old slot (`dest[i]` for `src[i]`), `capacity` for the
+  others (dropped by `moved_rows`)."""
+  where = np.full(old_capacity, capacity, np.int32)
+  where[src] = dest
+  return where
+
+
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def moved_rows(values, fills, where: jax.Array, *, capacity: int):
+  """Each leaf of `values` (`(C, ...)` rows) in a table of `capacity` slots: old slot `i`'s row
+  at `where[i]` (`capacity`: nowhere, `slot_map`), every other slot the leaf's `fills` (a
+  scalar, or one row). Jitted per pair of capacities; the host rehash's move for large tables
+  (`moves_on_device`), where writing the grown arrays once, in XLA's own memory, is cheaper
+  than NumPy's arrays copied in.
+
+  Returns:
+    `(moved, claims)`: the pytree of `values` with `(capacity, ...)` leaves, and a zeroed
+    `(capacity,) int32` scratch for the grown table's claims, placed as they are.
+  """
+  def move(old, fill):
+    fresh = jnp.broadcast_to(jnp.asarray(fill, old.dtype), (capacity,) + old.shape[1:])
+    return fresh.at[where].set(old, mode="drop")
+  return jax.tree.map(move, values, fills), jnp.zeros(capacity, jnp.int32)
 
 
 def empty_table(capacity: int) -> jax.Array:

@@ -51,11 +51,23 @@ def _assert_same_maps(a, b):
       np.testing.assert_array_equal(weight, gb[key][1])
 
 
-def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves():
+@pytest.mark.parametrize("moves", ["numpy", "compiled"])
+def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves(
+    moves, monkeypatch):
   """Both layers (and free space) grow at frame 1 (frame 0 leaves room, so the prepared
   geometry settings must outlive the layer's donation); the map equals a map of the final
   capacities fused frame by frame with `fuse_frame`, bit for bit, and across the growths the
-  frame's half compiled once, the rehashes not at all (host NumPy)."""
+  frame's half compiled once, the rehashes not at all (host NumPy). The rows move in NumPy
+  (small tables) or, as large tables' do, with `hashing.moved_rows`, once per layer's growth;
+  either way the grown arrays are placed as the old ones (a committed copy would compile
+  each table half again)."""
+  if moves == "compiled":
+    monkeypatch.setattr(jf.hashing, "HOST_MOVE_BYTES", 0)
+  watched = (fusion.prepare_frame, fusion.fuse_prepared_donating, tsdf.integrate_blocks_donating,
+             state_lib.grown_map, tsdf.grown_tsdf, jf.hashing.moved_rows)
+  for fun in watched:      # each run of the test counts its own entries
+    fun.clear_cache()
+  mover = jf.hashing.moved_rows._cache_size()
   rule = jf.rules.robust(beta=0.3)
   frames = _frames(5)
   programs = {name: fun._cache_size() for name, fun in (
@@ -73,6 +85,7 @@ def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves
       ("geometry", tsdf.integrate_blocks_donating), ("rehash", state_lib.grown_map),
       ("block rehash", tsdf.grown_tsdf))}
   assert grown == {"prepare": 1, "semantic": 2, "geometry": 2, "rehash": 0, "block rehash": 0}
+  assert jf.hashing.moved_rows._cache_size() - mover == (2 if moves == "compiled" else 0)
   fixed = jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
                       free_space=True,
                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05,
@@ -82,21 +95,41 @@ def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves
   _assert_same_maps(mapper.state, fixed)
 
 
-def test_the_host_rehash_equals_the_compiled_one():
+@pytest.mark.parametrize("on_device", [False, True])
+def test_the_host_rehash_equals_the_compiled_one(on_device):
   rule = jf.rules.bayes()
   frames = _frames(2)
   state = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule,
+                      free_space=True,
                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
   for frame in frames:
     state = jf.fuse_frame(state, frame, CAMERA, rule)
   prior = state_lib.prior_row(state, rule)
-  host, lost = state_lib.grown_map_host(state, prior, capacity=2**14)
+  host, lost = state_lib.grown_map_host(state, prior, capacity=2**14, on_device=on_device)
   device, device_lost = state_lib.grown_map(state, prior, capacity=2**14)
   assert lost == int(device_lost) == 0 and host.capacity == 2**14
   assert int(host.num_occupied) == int(state.num_occupied)
+  assert not np.asarray(host.claims).any() and host.claims.shape == (2**14,)
   _assert_same_maps(host.replace(geometry=None), device.replace(geometry=None))
   _assert_same_maps(host.replace(geometry=None), state.replace(geometry=None))
-  blocks, blocks_lost = tsdf.grown_tsdf_host(state.geometry, capacity=2**11)
+  # Each voxel keeps its occupancy log-odds and hits; every other slot holds the prior.
+  for grown in (host, device):
+    old_keys, new_keys = np.asarray(state.keys), np.asarray(grown.keys)
+    before = {tuple(k): i for i, k in enumerate(old_keys) if k[0] != jf.hashing.EMPTY}
+    after = {tuple(k): i for i, k in enumerate(new_keys) if k[0] != jf.hashing.EMPTY}
+    assert before.keys() == after.keys() and before
+    old_at, new_at = list(before.values()), [after[k] for k in before]
+    for old, new in ((state.free_space.log_odds, grown.free_space.log_odds),
+                     (state.hits, grown.hits)):
+      np.testing.assert_array_equal(np.asarray(old)[old_at], np.asarray(new)[new_at])
+    empty = np.ones(2**14, bool)
+    empty[new_at] = False
+    assert not np.asarray(grown.free_space.log_odds)[empty].any()
+    assert not np.asarray(grown.hits)[empty].any()
+    for name, row in prior.items():
+      np.testing.assert_array_equal(np.asarray(grown.rows[name])[empty],
+                                    np.broadcast_to(np.asarray(row), (empty.sum(), K)))
+  blocks, blocks_lost = tsdf.grown_tsdf_host(state.geometry, capacity=2**11, on_device=on_device)
   assert blocks_lost == 0 and blocks.capacity == 2**11
   a, b = _blocks(blocks), _blocks(tsdf.grown_tsdf(state.geometry, capacity=2**11)[0])
   assert a.keys() == b.keys() == _blocks(state.geometry).keys()
