@@ -92,8 +92,8 @@ def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves
   _assert_same_maps(mapper.state, fixed)
 
 
-@pytest.mark.parametrize("on_device", [False, True])
-def test_the_host_rehash_equals_the_compiled_one(on_device):
+def test_the_host_rehash_equals_the_compiled_one():
+  """Rows moved in NumPy and by `hashing.moved_rows` (`on_device`) alike."""
   rule = jf.rules.bayes()
   frames = _frames(2)
   state = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule,
@@ -102,38 +102,42 @@ def test_the_host_rehash_equals_the_compiled_one(on_device):
   for frame in frames:
     state = jf.fuse_frame(state, frame, CAMERA, rule)
   prior = state_lib.prior_row(state, rule)
-  host, lost = state_lib.grown_map_host(state, prior, capacity=2**14, on_device=on_device)
   device, device_lost = state_lib.grown_map(state, prior, capacity=2**14)
-  assert lost == int(device_lost) == 0 and host.capacity == 2**14
-  assert int(host.num_occupied) == int(state.num_occupied)
-  assert not np.asarray(host.claims).any() and host.claims.shape == (2**14,)
-  _assert_same_maps(host.replace(geometry=None), device.replace(geometry=None))
-  _assert_same_maps(host.replace(geometry=None), state.replace(geometry=None))
-  # Each voxel keeps its occupancy log-odds and hits; every other slot holds the prior.
-  for grown in (host, device):
-    old_keys, new_keys = np.asarray(state.keys), np.asarray(grown.keys)
-    before = {tuple(k): i for i, k in enumerate(old_keys) if k[0] != jf.hashing.EMPTY}
-    after = {tuple(k): i for i, k in enumerate(new_keys) if k[0] != jf.hashing.EMPTY}
-    assert before.keys() == after.keys() and before
-    old_at, new_at = list(before.values()), [after[k] for k in before]
-    for old, new in ((state.free_space.log_odds, grown.free_space.log_odds),
-                     (state.hits, grown.hits)):
-      np.testing.assert_array_equal(np.asarray(old)[old_at], np.asarray(new)[new_at])
-    empty = np.ones(2**14, bool)
-    empty[new_at] = False
-    assert not np.asarray(grown.free_space.log_odds)[empty].any()
-    assert not np.asarray(grown.hits)[empty].any()
-    for name, row in prior.items():
-      np.testing.assert_array_equal(np.asarray(grown.rows[name])[empty],
-                                    np.broadcast_to(np.asarray(row), (empty.sum(), K)))
   # 2**12 blocks: not the growing walk's 2**11, whose moved_rows entry it counts.
-  blocks, blocks_lost = tsdf.grown_tsdf_host(state.geometry, capacity=2**12, on_device=on_device)
-  assert blocks_lost == 0 and blocks.capacity == 2**12
-  a, b = _blocks(blocks), _blocks(tsdf.grown_tsdf(state.geometry, capacity=2**12)[0])
-  assert a.keys() == b.keys() == _blocks(state.geometry).keys()
-  for key, (sdf, weight) in a.items():
-    np.testing.assert_array_equal(sdf, b[key][0])
-    np.testing.assert_array_equal(weight, b[key][1])
+  compiled_blocks = _blocks(tsdf.grown_tsdf(state.geometry, capacity=2**12)[0])
+  assert int(device_lost) == 0 and compiled_blocks.keys() == _blocks(state.geometry).keys()
+  for on_device in (False, True):
+    host, lost = state_lib.grown_map_host(state, prior, capacity=2**14, on_device=on_device)
+    assert lost == 0 and host.capacity == 2**14
+    assert int(host.num_occupied) == int(state.num_occupied)
+    assert not np.asarray(host.claims).any() and host.claims.shape == (2**14,)
+    _assert_same_maps(host.replace(geometry=None), device.replace(geometry=None))
+    _assert_same_maps(host.replace(geometry=None), state.replace(geometry=None))
+    # Each voxel keeps its occupancy log-odds and hits; every other slot holds the prior.
+    for grown in (host, device):
+      old_keys, new_keys = np.asarray(state.keys), np.asarray(grown.keys)
+      before = {tuple(k): i for i, k in enumerate(old_keys) if k[0] != jf.hashing.EMPTY}
+      after = {tuple(k): i for i, k in enumerate(new_keys) if k[0] != jf.hashing.EMPTY}
+      assert before.keys() == after.keys() and before
+      old_at, new_at = list(before.values()), [after[k] for k in before]
+      for old, new in ((state.free_space.log_odds, grown.free_space.log_odds),
+                       (state.hits, grown.hits)):
+        np.testing.assert_array_equal(np.asarray(old)[old_at], np.asarray(new)[new_at])
+      empty = np.ones(2**14, bool)
+      empty[new_at] = False
+      assert not np.asarray(grown.free_space.log_odds)[empty].any()
+      assert not np.asarray(grown.hits)[empty].any()
+      for name, row in prior.items():
+        np.testing.assert_array_equal(np.asarray(grown.rows[name])[empty],
+                                      np.broadcast_to(np.asarray(row), (empty.sum(), K)))
+    blocks, blocks_lost = tsdf.grown_tsdf_host(state.geometry, capacity=2**12,
+                                               on_device=on_device)
+    assert blocks_lost == 0 and blocks.capacity == 2**12
+    a = _blocks(blocks)
+    assert a.keys() == compiled_blocks.keys()
+    for key, (sdf, weight) in a.items():
+      np.testing.assert_array_equal(sdf, compiled_blocks[key][0])
+      np.testing.assert_array_equal(weight, compiled_blocks[key][1])
   # Too small a table: the voxels that find no slot are counted (and grow_map refuses).
   _, lost = state_lib.grown_map_host(state.replace(geometry=None), prior, capacity=2**12)
   assert lost == 0
