@@ -173,3 +173,28 @@ def test_host_lookup_equals_the_device_lookup(stored, queries):
   slots, found = hashing.lookup_host(np.asarray(table), query, max_probes=4)
   np.testing.assert_array_equal(found, np.asarray(dev_found)[:len(query)])
   np.testing.assert_array_equal(slots[found], np.asarray(dev_slots)[:len(query)][found])
+
+
+def test_a_host_rehash_moves_its_rows_on_the_device_from_the_byte_bound():
+  rows = {"keys": np.zeros((4, 3), np.int32), "rows": np.zeros((4, 5), np.float32)}  # 32 B a row
+  bound = hashing.HOST_MOVE_BYTES // 32
+  assert not hashing.moves_on_device(bound // 2, rows)
+  assert hashing.moves_on_device(bound, rows)
+  assert not hashing.moves_on_device(bound, {"keys": rows["keys"]})   # 12 B a row
+
+
+def test_moved_rows_places_each_old_slot_and_fills_the_rest():
+  old = np.arange(12, dtype=np.float32).reshape(4, 3)
+  keys = np.array([[1, 1, 1], [hashing.EMPTY] * 3, [2, 2, 2], [3, 3, 3]], np.int32)
+  where = hashing.slot_map(4, 8, np.array([0, 2, 3]), np.array([6, 1, 3]))
+  np.testing.assert_array_equal(where, [6, 8, 1, 3])          # slot 1 was empty: dropped
+  moved, claims = hashing.moved_rows({"keys": keys, "rows": old},
+                                     {"keys": hashing.EMPTY, "rows": np.float32([7, 8, 9])},
+                                     where, capacity=8)
+  expect = np.tile(np.float32([7, 8, 9]), (8, 1))
+  expect[[6, 1, 3]] = old[[0, 2, 3]]
+  np.testing.assert_array_equal(np.asarray(moved["rows"]), expect)
+  assert [tuple(k) for k in np.asarray(moved["keys"])[[6, 1, 3]]] == [(1, 1, 1), (2, 2, 2),
+                                                                      (3, 3, 3)]
+  assert (np.asarray(moved["keys"])[[0, 2, 4, 5, 7]] == hashing.EMPTY).all()
+  assert np.asarray(claims).shape == (8,) and not np.asarray(claims).any()
