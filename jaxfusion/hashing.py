@@ -83,7 +83,7 @@ def insert_host(capacity: int, keys: np.ndarray, *, max_probes: int, with_table:
     keys: `(N, 3) int32` distinct keys.
     max_probes: the table's probe bound.
     with_table: False: only the slots (the table is None), for a caller that builds the table
-      elsewhere (`moved_rows`).
+      elsewhere (`rehash_host`, whose table `grown_rows` builds).
 
   Returns:
     `(table (C, 3) int32, slots (N,) int32, found (N,) bool)`: keys not found did not fit.
@@ -137,20 +137,19 @@ def lookup_host(table: np.ndarray, keys: np.ndarray, *, max_probes: int):
   return slots, found
 
 
-def rehash_host(table: np.ndarray, capacity: int, *, max_probes: int, with_table: bool = True):
-  """A table `(C, 3) int32` (NumPy, or a JAX array in host memory, read in place) rehashed
-  into `capacity` slots by `insert_host`, its stored keys offered in slot order.
+def rehash_host(table: np.ndarray, capacity: int, *, max_probes: int):
+  """The slots of a table `(C, 3) int32` (NumPy, or a JAX array in host memory, read in place)
+  rehashed into `capacity` slots by `insert_host`, its stored keys offered in slot order; the
+  table itself is built by `grown_rows`, with the other arrays.
 
   Returns:
-    `(new_table (C', 3) int32, src, dest, lost)`: the key of old slot `src[i]` went to new slot
-    `dest[i]` (`(M,) int` each), and `lost` keys found no slot within `max_probes`; `new_table`
-    is None with `with_table=False`.
+    `(src, dest, lost)`: the key of old slot `src[i]` went to new slot `dest[i]` (`(M,) int`
+    each), and `lost` keys found no slot within `max_probes`.
   """
   table = np.asarray(table)
   old = np.flatnonzero(table[:, 0] != EMPTY)
-  new_table, slots, found = insert_host(capacity, table[old], max_probes=max_probes,
-                                        with_table=with_table)
-  return new_table, old[found], slots[found], int(np.count_nonzero(~found))
+  _, slots, found = insert_host(capacity, table[old], max_probes=max_probes, with_table=False)
+  return old[found], slots[found], int(np.count_nonzero(~found))
 
 
 # From this many bytes of grown arrays on, a host rehash moves the rows with one compiled
@@ -193,6 +192,35 @@ def moved_rows(values, fills, where: jax.Array, *, capacity: int):
     fresh = jnp.broadcast_to(jnp.asarray(fill, old.dtype), (capacity,) + old.shape[1:])
     return fresh.at[where].set(old, mode="drop")
   return jax.tree.map(move, values, fills), jnp.zeros(capacity, jnp.int32)
+
+
+def grown_rows(values, fills, src: np.ndarray, dest: np.ndarray, *, capacity: int,
+               on_device=None):
+  """A host rehash's arrays in `capacity` slots: each leaf of `values` (`(C, ...)` rows, the
+  key table among them) with old slot `src[i]`'s row at `dest[i]` (`rehash_host`) and the
+  leaf's `fills` elsewhere, handed back placed as the old arrays. Moved in NumPy, or with one
+  compiled `moved_rows` (`on_device`; None: `moves_on_device`).
+
+  Returns:
+    `(moved, claims)` as `moved_rows`.
+  """
+  if on_device is None:
+    on_device = moves_on_device(capacity, values)
+  like = jax.tree.leaves(values)[0]
+  if on_device:
+    return moved_rows(values, fills, slot_map(like.shape[0], capacity, src, dest),
+                      capacity=capacity)
+
+  def move(old, fill):
+    old, fill = np.asarray(old), np.asarray(fill, old.dtype)
+    new = np.zeros((capacity,) + old.shape[1:], old.dtype)
+    if fill.any():   # zero rows stay the system's zeroed pages
+      new[...] = fill
+    new[dest] = old[src]
+    return to_device_of(new, like)
+
+  return (jax.tree.map(move, values, fills),
+          to_device_of(np.zeros(capacity, np.int32), like))
 
 
 def empty_table(capacity: int) -> jax.Array:

@@ -259,9 +259,9 @@ def grown_map_host(state: MapState, prior, *, capacity: int, on_device: Optional
   in a table of `capacity` slots placed by `hashing.rehash_host`, returned as device arrays.
   The slots come from NumPy, so a growing map on the CPU compiles no rehash (bench/RESULTS.md,
   "A map that grows over a long walk"); the slots a voxel lands in may differ from
-  `grown_map`'s where keys collide, the map read out does not. The rows move in NumPy, or,
-  for large tables (`on_device`; None: `hashing.moves_on_device`), with one compiled
-  `hashing.moved_rows`.
+  `grown_map`'s where keys collide, the map read out does not. The rows move as
+  `hashing.grown_rows` moves them: in NumPy, or for large tables (`on_device`; None:
+  `hashing.moves_on_device`) with one compiled `hashing.moved_rows`.
 
   Returns:
     `(grown, lost)` as `grown_map`: the map of C' slots and the voxels that found no slot.
@@ -271,25 +271,9 @@ def grown_map_host(state: MapState, prior, *, capacity: int, on_device: Optional
             "log_odds": None if free is None else free.log_odds}
   fills = {"keys": hashing.EMPTY, "rows": prior, "hits": 0,
            "log_odds": None if free is None else 0.0}
-  if on_device is None:
-    on_device = hashing.moves_on_device(capacity, arrays)
-  table, src, dest, lost = hashing.rehash_host(state.keys, capacity, max_probes=state.max_probes,
-                                               with_table=not on_device)
-  if on_device:
-    moved, claims = hashing.moved_rows(
-        arrays, fills, hashing.slot_map(state.capacity, capacity, src, dest), capacity=capacity)
-  else:
-    def move(old_values, fill):
-      old_values = np.asarray(old_values)
-      new = np.empty((capacity,) + old_values.shape[1:], old_values.dtype)
-      new[...] = np.asarray(fill, old_values.dtype)
-      new[dest] = old_values[src]
-      return hashing.to_device_of(new, state.keys)
-
-    moved = jax.tree.map(move, {k: v for k, v in arrays.items() if k != "keys"},
-                         {k: v for k, v in fills.items() if k != "keys"})
-    moved["keys"] = hashing.to_device_of(table, state.keys)
-    claims = hashing.to_device_of(np.zeros(capacity, np.int32), state.keys)
+  src, dest, lost = hashing.rehash_host(state.keys, capacity, max_probes=state.max_probes)
+  moved, claims = hashing.grown_rows(arrays, fills, src, dest, capacity=capacity,
+                                     on_device=on_device)
   if free is not None:
     free = free.replace(log_odds=moved["log_odds"])
   grown = state.replace(keys=moved["keys"], rows=moved["rows"], hits=moved["hits"],

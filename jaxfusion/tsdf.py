@@ -794,28 +794,13 @@ def grown_tsdf(state: TSDFState, *, capacity: int):
 def grown_tsdf_host(state: TSDFState, *, capacity: int, on_device: Optional[bool] = None):
   """`grown_tsdf` with the rehash in NumPy on the host (`hashing.rehash_host`; what `grow_tsdf`
   runs on the CPU, where it compiles no rehash): `(grown, lost)` as `grown_tsdf`. The blocks
-  move in NumPy, or, for large tables (`on_device`; None: `hashing.moves_on_device`), with one
-  compiled `hashing.moved_rows`."""
+  move as `hashing.grown_rows` moves them: in NumPy, or for large tables (`on_device`; None:
+  `hashing.moves_on_device`) with one compiled `hashing.moved_rows`."""
   arrays = {"block_keys": state.block_keys, "sdf": state.sdf, "weight": state.weight}
-  if on_device is None:
-    on_device = hashing.moves_on_device(capacity, arrays)
-  table, src, dest, lost = hashing.rehash_host(state.block_keys, capacity,
-                                               max_probes=state.max_probes,
-                                               with_table=not on_device)
-  if on_device:
-    fills = {"block_keys": hashing.EMPTY, "sdf": 0.0, "weight": 0.0}
-    moved, claims = hashing.moved_rows(
-        arrays, fills, hashing.slot_map(state.capacity, capacity, src, dest), capacity=capacity)
-  else:
-    def move(values):
-      values = np.asarray(values)
-      new = np.zeros((capacity,) + values.shape[1:], values.dtype)
-      new[dest] = values[src]
-      return hashing.to_device_of(new, state.block_keys)
-
-    moved = {"block_keys": hashing.to_device_of(table, state.block_keys),
-             "sdf": move(state.sdf), "weight": move(state.weight)}
-    claims = hashing.to_device_of(np.zeros(capacity, np.int32), state.block_keys)
+  fills = {"block_keys": hashing.EMPTY, "sdf": 0.0, "weight": 0.0}
+  src, dest, lost = hashing.rehash_host(state.block_keys, capacity, max_probes=state.max_probes)
+  moved, claims = hashing.grown_rows(arrays, fills, src, dest, capacity=capacity,
+                                     on_device=on_device)
   grown = state.replace(block_keys=moved["block_keys"], claims=claims, sdf=moved["sdf"],
                         weight=moved["weight"])
   return grown, lost
