@@ -147,3 +147,22 @@ def test_lazy_names_are_the_modules_own():
   assert set(jaxfusion.__all__) <= set(dir(jaxfusion))
   with pytest.raises(AttributeError, match="no attribute 'fuse_frames'"):
     jaxfusion.fuse_frames                            # pylint: disable=pointless-statement
+
+
+def test_the_lazy_tables_the_type_checking_imports_and_all_agree():
+  # `jaxfusion/__init__.py` names each export three times (the lazy table, `__all__`, and the
+  # imports type checkers read); they must not drift apart.
+  import jaxfusion                                   # pylint: disable=import-outside-toplevel
+  tree = ast.parse((ROOT / "jaxfusion" / "__init__.py").read_text())
+  checked = next(n for n in tree.body if isinstance(n, ast.If)
+                 and getattr(n.test, "id", None) == "TYPE_CHECKING")
+  typed_names, typed_modules = {}, set()
+  for node in checked.body:
+    if node.module == "jaxfusion":
+      typed_modules |= {a.name for a in node.names}
+    else:
+      typed_names |= {a.name: node.module.split(".", 1)[1] for a in node.names}
+  assert typed_names == jaxfusion._EXPORTS           # pylint: disable=protected-access
+  assert typed_modules == set(jaxfusion._SUBMODULES)  # pylint: disable=protected-access
+  assert set(jaxfusion.__all__) <= set(typed_names) | typed_modules
+  assert set(typed_names) <= set(jaxfusion.__all__)
