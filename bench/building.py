@@ -26,6 +26,10 @@ Measured:
   work at every size: the walk's first `PROBE_FRAMES` frames fused again with `fuse_frame`
   into a copy of the map (their voxels and blocks are all held: lookups and row updates, no
   insertion; compiled first, the copy then dropped), `PROBE_PASSES` passes, their median;
+  each probe frame is first fused into a copy of a reference map (a fresh map of `REFERENCE`
+  slots and blocks that holds the probe frames only, the same at every checkpoint), and the
+  median of the frames' ratios (map over reference) is the cost against the map's size with
+  the machine's drift between checkpoints taken out;
 * each growth: the frame, the layer, old → new capacity and that frame's time;
 * peak process memory (`resource.getrusage(...).ru_maxrss`) and the map arrays' bytes
   (`nbytes` of the semantic table and the block table) at every checkpoint;
@@ -47,6 +51,7 @@ Writes `bench/results/building.json` and the scale curve `building.png` (`buildi
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -69,6 +74,9 @@ NUM_QUERY = 2**16
 # The probe: the walk's first frames, fused again into a copy of the map at each checkpoint.
 PROBE_FRAMES = 20
 PROBE_PASSES = 3
+# The probe's point of comparison: a fresh map of these (slots, blocks) holding only the probe
+# frames, fused frame by frame beside the map's copy at every checkpoint (`probe`).
+REFERENCE = (2**21, 2**17)
 CHECKPOINTS = tuple(int(m * 10**e) for e in range(4, 9) for m in (1, 3))
 
 # Per-voxel layouts of the peers, from their source.
@@ -147,26 +155,55 @@ def _timed(fn, repeats: int = 3) -> tuple:
   return float(np.median(seconds)), out
 
 
-def probe(state, frames, camera, rule, passes: int = PROBE_PASSES) -> dict:
+def reference_map(state, frames, camera, rule, sizes) -> object:
+  """A fresh map as `state` (its voxel size, rule and geometry settings) at `sizes = (slots,
+  blocks)` (`REFERENCE`), holding just the probe `frames`: the probe's fixed point of
+  comparison (`probe`)."""
+  geometry = dataclasses.replace(state.geometry.config(), capacity=int(sizes[1]))
+  ref = jf.init_map(capacity=int(sizes[0]), num_classes=state.num_classes,
+                    voxel_size=float(state.voxel_size), rule=rule, max_probes=state.max_probes,
+                    geometry=geometry)
+  for frame in frames:
+    ref = jf.fuse_frame(ref, frame, camera, rule)
+  return jax.block_until_ready(ref)
+
+
+def probe(state, frames, camera, rule, passes: int = PROBE_PASSES, reference=None) -> dict:
   """`fuse_frame` of the probe frames (frames the map holds already) into a copy of `state`,
   `passes` times over (the frames' costs differ by up to 1.5×: one pass's median moved by
   ±10 % between checkpoints of the same table), after a warm-up call on another copy:
   `{"probe_ms": median, "probe_ms_all": [...], "probe_huge_bytes": the process's bytes in huge
-  pages meanwhile}`. The copies are dropped; `state` is untouched."""
-  copy = lambda: jax.tree_util.tree_map(jnp.copy, state)
-  jax.block_until_ready(jf.fuse_frame(copy(), frames[0], camera, rule).rows)   # compile
-  work, seconds = copy(), []
-  jax.block_until_ready(work.rows)
+  pages meanwhile}`. With a `reference` map (one that holds the probe frames, the same object
+  at every checkpoint), each frame is fused into a copy of it just before it is fused into the
+  map's copy, and the record adds `"reference_ms"` (its median) and `"relative"` (the median of
+  the frames' ratios, map over reference): the map's cost with the machine's drift between
+  checkpoints taken out (its speed moves by 20 % over minutes). The copies are dropped; `state`
+  and `reference` are untouched."""
+  copy = lambda tree: jax.tree_util.tree_map(jnp.copy, tree)
+  jax.block_until_ready(jf.fuse_frame(copy(state), frames[0], camera, rule).rows)   # compile
+  work, seconds = copy(state), []
+  ref, ref_seconds = (None, None) if reference is None else (copy(reference), [])
+  jax.block_until_ready((work.rows, None if ref is None else ref.rows))
   huge = hugepages.anon_huge_bytes()      # the copy's pages (and the map's) as the probe runs
   for _ in range(passes):
     for frame in frames:
+      if ref is not None:
+        start = time.perf_counter()
+        ref = jf.fuse_frame(ref, frame, camera, rule)
+        jax.block_until_ready(ref.rows)
+        ref_seconds.append(time.perf_counter() - start)
       start = time.perf_counter()
       work = jf.fuse_frame(work, frame, camera, rule)
       jax.block_until_ready(work.rows)
       seconds.append(time.perf_counter() - start)
-  del work
-  return {"probe_ms": 1e3 * float(np.median(seconds)),
-          "probe_ms_all": [1e3 * x for x in seconds], "probe_huge_bytes": huge}
+  del work, ref
+  out = {"probe_ms": 1e3 * float(np.median(seconds)),
+         "probe_ms_all": [1e3 * x for x in seconds], "probe_huge_bytes": huge}
+  if reference is not None:
+    out.update(reference_ms=1e3 * float(np.median(ref_seconds)),
+               reference_ms_all=[1e3 * x for x in ref_seconds],
+               relative=float(np.median(np.array(seconds) / np.array(ref_seconds))))
+  return out
 
 
 def checkpoint(state, points, frame: int) -> dict:
@@ -189,7 +226,7 @@ def checkpoint(state, points, frame: int) -> dict:
 def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
         num_frames=None, stride: int = 1, window: int = 50, capacity: int = 2**14,
         blocks: int = 2**10, stop_at=None, probe_frames: int = PROBE_FRAMES,
-        log=None) -> dict:
+        reference=(2**16, 2**12), log=None) -> dict:
   """The walk fused into a growing `Mapper`; returns the JSON record (module docstring)."""
   walk = floor_lib.FloorWalk(floor_lib.make_floor(rooms, seed=seed), num_frames=num_frames,
                              stride=stride, height=height, width=width)
@@ -203,7 +240,7 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
   hi = walk.T_world_cam[:, :3, 3].max(0) + 2.0
   points = jnp.asarray(rng.uniform(lo, hi, (NUM_QUERY, 3)), jnp.float32)
   var = np.full((height, width, K), 0.01, np.float32)
-  probes = []
+  probes, ref = [], None
   frames, checks, growths = [], [], []
   targets = list(CHECKPOINTS)
   render_s = []
@@ -231,11 +268,15 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
       while targets and voxels >= targets[0]:
         targets.pop(0)
       held = t >= probe_frames - 1       # the probe frames are all in the map
-      checks.append(probe(mapper.state, probes, camera, rule) if held else {"probe_ms": None})
+      if held and ref is None:
+        ref = reference_map(mapper.state, probes, camera, rule, reference)
+      checks.append(probe(mapper.state, probes, camera, rule, reference=ref) if held
+                    else {"probe_ms": None})
       checks[-1].update(checkpoint(mapper.state, points, t))
       if log:
         c = checks[-1]
-        probed = "—" if c["probe_ms"] is None else f"{c['probe_ms']:.1f}"
+        probed = "—" if c["probe_ms"] is None else (
+            f"{c['probe_ms']:.1f} (reference {c['reference_ms']:.1f}, ×{c['relative']:.2f})")
         log(f"frame {t}: {voxels:,} voxels, {num_blocks:,} blocks; probe {probed} "
             f"ms/frame; read {c['read_s']:.3f} s, "
             f"query {c['query_s']:.3f} s, mesh {c['mesh_s']:.2f} s; {_rss_mb():.0f} MB; "
@@ -255,7 +296,8 @@ def run(*, rooms: int, seed: int, height: int, width: int, voxel_size: float,
       "rule": rule.name, "device": jax.devices()[0].device_kind,
       "first_frame_s": frames[0][1], "render_median_ms": 1e3 * float(np.median(render_s[1:]))
       if len(render_s) > 1 else None,
-      "probe_frames": probe_frames, "windows": windows, "growths": growths,
+      "probe_frames": probe_frames, "reference": [int(x) for x in reference],
+      "windows": windows, "growths": growths,
       "checkpoints": checks,
       "voxels": int(mapper.state.num_occupied), "dropped": int(mapper.state.num_dropped),
       "blocks": int(mapper.state.geometry.num_blocks),
@@ -363,13 +405,20 @@ def table(result: dict) -> str:
   lines += ["", "| growth at frame | layer | capacity | frame s |", "|---|---|---|---|"]
   lines += [f"| {g['frame']} | {g['layer']} | {g['old']:,} → {g['new']:,} | {g['s']:.2f} |"
             for g in r["growths"]]
-  lines += ["", "| frame | voxels | probe fuse ms/frame (median) | read_map s (ns/voxel) | "
-                "query 2^16 pts s | extract_mesh s (faces, µs/face) | map MB (sem + TSDF) | "
-                "peak RSS MB |",
-            "|---|---|---|---|---|---|---|---|"]
+  sizes = r.get("reference")     # runs before 12-08 had no reference map
+  ref_head = "" if sizes is None else (
+      f"reference map ms/frame (2^{int(sizes[0]).bit_length() - 1} slots, "
+      f"2^{int(sizes[1]).bit_length() - 1} blocks) | probe / reference (median of frames) | ")
+  lines += ["", f"| frame | voxels | probe fuse ms/frame (median) | {ref_head}"
+                "read_map s (ns/voxel) | query 2^16 pts s | extract_mesh s (faces, µs/face) | "
+                "map MB (sem + TSDF) | peak RSS MB |",
+            "|---|---|---|" + ("" if sizes is None else "---|---|") + "---|---|---|---|---|"]
   for c in r["checkpoints"]:
     mb = c["map_bytes"]
     probed = "—" if c["probe_ms"] is None else f"{c['probe_ms']:.1f}"
+    if sizes is not None:
+      probed += " | — | —" if c.get("relative") is None else (
+          f" | {c['reference_ms']:.1f} | {c['relative']:.2f}")
     lines.append(f"| {c['frame']} | {c['voxels']:,} | {probed} | {c['read_s']:.3f} "
                  f"({c['read_ns_per_voxel']:.0f}) | {c['query_s']:.4f} | {c['mesh_s']:.3f} "
                  f"({c['mesh_faces']:,}, {c['mesh_us_per_face']:.2f}) | "
@@ -409,6 +458,13 @@ def figure(result: dict, path) -> None:
   if probed:
     left.plot([x["voxels"] for x in probed], [x["probe_ms"] for x in probed], "s-", ms=4,
               label="the walk's first frames fused again, median")
+  related = [x for x in probed if x.get("relative") is not None]
+  if related:
+    twin = left.twinx()
+    twin.plot([x["voxels"] for x in related], [x["relative"] for x in related], "d--",
+              color="C3", ms=4, label="the same, over the reference map beside it")
+    twin.axhline(1.2, color="C3", lw=0.6, ls=":")
+    twin.set(ylabel="probe / reference (dotted: 1.2)", ylim=(0.0, 2.0))
   voxels_at = {x["frames"][1]: x["voxels"] for x in w}
   for g in result["growths"]:
     near = min(voxels_at, key=lambda f: abs(f - g["frame"])) if voxels_at else None
@@ -418,7 +474,10 @@ def figure(result: dict, path) -> None:
            title=f"{result['spec']}, {result['height']}×{result['width']}, "
                  f"{100 * result['voxel_size']:g} cm (grey: growths)")
   left.set_ylim(bottom=0)
-  left.legend(loc="lower right")
+  handles = left.get_legend_handles_labels()
+  if related:
+    handles = tuple(a + b for a, b in zip(handles, twin.get_legend_handles_labels()))
+  left.legend(*handles, loc="lower right", fontsize="small")
   c = result["checkpoints"]
   vox = [x["voxels"] for x in c]
   right.plot(vox, [x["read_s"] for x in c], "o-", ms=3, label="read_map (all voxels)")
@@ -474,11 +533,11 @@ def main(argv=None) -> None:
             f"2^{r['blocks'].bit_length() - 1} | {r['load']:.3f} | {r['probe_ms']:.1f} |")
     return
   quick = dict(rooms=2, voxel_size=0.05, height=48, width=64, frames=160, stride=2, window=10,
-               capacity=2**14, blocks=2**10, stop_at=None)
+               capacity=2**14, blocks=2**10, stop_at=None, reference=(2**16, 2**12))
   # Start at 2^15 slots / 2^11 blocks: with growth factor 4 the tables pass 2^25 and 2^19,
   # which hold 1.7·10⁷ voxels and 2.6·10⁵ blocks at load 0.5 (never 2^26 / 2^20).
   full = dict(rooms=16, voxel_size=0.02, height=120, width=160, frames=None, stride=1,
-              window=50, capacity=2**15, blocks=2**11, stop_at=1.1e7)
+              window=50, capacity=2**15, blocks=2**11, stop_at=1.1e7, reference=REFERENCE)
   config = quick if args.quick else full
   for name in ("rooms", "voxel_size", "height", "width", "frames", "stride", "stop_at"):
     if getattr(args, name) is not None:
@@ -488,6 +547,7 @@ def main(argv=None) -> None:
                width=config["width"], voxel_size=config["voxel_size"],
                num_frames=config["frames"], stride=config["stride"], window=config["window"],
                capacity=config["capacity"], blocks=config["blocks"], stop_at=stop_at,
+               reference=config["reference"],
                log=lambda line: print(line, file=sys.stderr, flush=True))
   result["quick"] = bool(args.quick)
   out = pathlib.Path(args.out)
