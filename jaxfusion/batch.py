@@ -39,6 +39,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxfusion import camera as camera_lib
+from jaxfusion import distributed
 from jaxfusion import free_space as free_space_lib
 from jaxfusion import fusion
 from jaxfusion import rules as rules_lib
@@ -235,6 +236,7 @@ def put_sharded(tree, mesh: Mesh, *, sharded: bool):
 def gather(tree):
   """The full value of (possibly multi-host sharded) arrays as NumPy, on every process."""
   if jax.process_count() > 1:
+    distributed.barrier("batch.gather")   # the processes may finish their shards far apart
     return multihost_utils.process_allgather(tree, tiled=True)
   return jax.device_get(tree)
 

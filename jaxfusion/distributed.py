@@ -20,8 +20,15 @@ A process that never joins makes `initialize` fail after `timeout_s` in every pr
 a process that dies later is noticed by JAX's coordination service after `heartbeat_s`, which
 then stops every other process (the local launcher notices a dead process at once and stops
 the others itself). Nothing waits forever.
+
+Processes finish their shards at different times, and the CPU collectives (gloo) give a
+process 30 s to meet the others in a collective's first call: so every exchange here
+(`allgather_objects`, `gather_items`, `batch.gather`) first waits at a barrier of the
+coordination service (`barrier`), which waits up to `WAIT_TIMEOUT_S`
+(`JAXFUSION_WAIT_TIMEOUT_S`) and costs no collective.
 """
 
+import itertools
 import os
 import pickle
 import sys
@@ -38,6 +45,10 @@ PROCESS_ID_ENV = "JAXFUSION_PROCESS_ID"
 TIMEOUT_ENV = "JAXFUSION_JOIN_TIMEOUT_S"   # the launcher's join timeout, optional
 DEFAULT_TIMEOUT_S = 60
 DEFAULT_HEARTBEAT_S = 30
+# How long a process waits at a barrier for the others to finish their shards (a process that
+# dies meanwhile is noticed sooner, by the heartbeat); `WAIT_TIMEOUT_ENV` overrides it.
+WAIT_TIMEOUT_S = 24 * 3600
+WAIT_TIMEOUT_ENV = "JAXFUSION_WAIT_TIMEOUT_S"
 
 
 class DistributedError(RuntimeError):
@@ -163,6 +174,7 @@ def allgather_objects(obj: Any) -> list:
   if jax.process_count() == 1:
     return [obj]
   payload = np.frombuffer(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL), np.uint8)
+  barrier("allgather_objects")   # a process that comes later than gloo's 30 s is no error
   sizes = np.asarray(multihost_utils.process_allgather(np.array([payload.size], np.int64)))
   sizes = sizes.reshape(-1)
   padded = np.zeros(int(sizes.max()), np.uint8)
@@ -190,10 +202,36 @@ def gather_items(local: dict, num_items: int) -> list:
   return [merged[i] for i in range(int(num_items))]
 
 
-def barrier(name: str) -> None:
-  """Waits until every process reaches `barrier(name)` (no-op with one process)."""
-  if jax.process_count() > 1:
+_BARRIERS = itertools.count()   # every process passes the same barriers in the same order
+
+
+def barrier(name: str, timeout_s: Optional[float] = None) -> None:
+  """Waits until every process reaches `barrier(name)` (no-op with one process), for up to
+  `timeout_s` (default `WAIT_TIMEOUT_S`, or `JAXFUSION_WAIT_TIMEOUT_S` seconds).
+
+  It is the coordination service's barrier (`jax.distributed`'s client, as JAX's own array
+  serialization waits), not a collective: a process may come hours after the others.
+
+  Raises:
+    DistributedError: not every process came within `timeout_s` (or one of them failed).
+  """
+  if jax.process_count() == 1:
+    return
+  if timeout_s is None:
+    timeout_s = float(os.environ.get(WAIT_TIMEOUT_ENV) or WAIT_TIMEOUT_S)
+  from jax._src import distributed as jax_distributed  # pylint: disable=import-outside-toplevel
+  client = jax_distributed.global_state.client
+  if client is None:       # processes joined without jax.distributed: a collective then
     multihost_utils.sync_global_devices(name)
+    return
+  try:
+    client.wait_at_barrier(f"jaxfusion/{next(_BARRIERS)}/{name}",
+                           timeout_in_ms=int(1000 * timeout_s))
+  except RuntimeError as err:   # XlaRuntimeError: DEADLINE_EXCEEDED, or a process failed
+    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    raise DistributedError(f"process {jax.process_index()} of {jax.process_count()}: not every "
+                           f"process reached {name!r} within {timeout_s:g} s: {first[:300]}"
+                           ) from None
 
 
 def shard_of(items: Sequence) -> list:

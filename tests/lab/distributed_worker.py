@@ -5,6 +5,10 @@ MODE `fuse`: joins the runtime, fuses `batch_inputs()` with `fuse_batch` and `fu
 sharded over the devices of both processes, gathers them, exchanges a Python object with
 `allgather_objects`, and process 0 saves everything to OUT (.npz).
 MODE `die`: joins, then process 1 exits with status 3 while process 0 waits on a collective.
+MODE `late`: process 1 reaches `gather_items` and `batch.gather` `LATE_S` after process 0,
+longer than the 30 s in which gloo's collectives let processes meet; process 0 saves both.
+MODE `absent`: process 0 waits at a barrier of 3 s that process 1 never reaches; process 0
+prints the `DistributedError` and exits with status 4.
 """
 
 import os
@@ -15,6 +19,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 from jaxfusion import distributed  # pylint: disable=wrong-import-position
 
 K, CAPACITY = 5, 2**10
+LATE_S = 40
 
 
 def batch_inputs():
@@ -62,6 +67,28 @@ def main(mode: str, out: str) -> int:
     distributed.allgather_objects("waiting for process 1")   # never answered
     return 0
   import jaxfusion as jf
+  if mode == "absent":
+    if distributed.process_index() == 0:
+      try:
+        distributed.barrier("never reached", timeout_s=3)
+      except distributed.DistributedError as err:
+        print(f"DistributedError: {err}", flush=True)
+        os._exit(4)
+    else:
+      import time
+      time.sleep(20)
+    return 0
+  if mode == "late":
+    import time
+    if distributed.process_index() == 1:
+      time.sleep(LATE_S)
+    gathered = distributed.gather_items({i: f"item {i}" for i in distributed.my_items(3)}, 3)
+    if distributed.process_index() == 0:
+      time.sleep(LATE_S)     # now process 0 comes late
+    ones = jf.batch.gather(jf.batch.put_sharded(np.arange(4.0), jf.make_mesh(), sharded=True))
+    if distributed.is_main():
+      np.savez(out, gathered=np.array(gathered), ones=ones)
+    return 0
   arrays = fuse(jf.make_mesh())
   objects = distributed.allgather_objects({"process": distributed.process_index(),
                                            "items": distributed.my_items(5)})

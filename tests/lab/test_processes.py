@@ -53,6 +53,33 @@ def test_a_process_that_dies_stops_the_run_with_one_line_in_bounded_time(tmp_pat
   assert "the other processes were stopped" in err[-1]
 
 
+def test_a_process_that_comes_late_to_an_exchange_is_waited_for(tmp_path):
+  # Past the 30 s in which gloo's collectives let processes meet, first process 1 then
+  # process 0 comes late: the coordination service's barrier before each exchange waits.
+  out = tmp_path / "late.npz"
+  start = time.monotonic()
+  status = processes.launch(["late", str(out)], 2, program=[sys.executable, WORKER],
+                            timeout_s=60)
+  assert status == 0 and time.monotonic() - start > 2 * distributed_worker.LATE_S
+  late = np.load(out)
+  assert list(late["gathered"]) == ["item 0", "item 1", "item 2"]
+  np.testing.assert_array_equal(late["ones"], np.arange(4.0))
+
+
+def test_a_barrier_that_a_process_never_reaches_fails_within_its_timeout(capfd):
+  start = time.monotonic()
+  status = processes.launch(["absent", "-"], 2, program=[sys.executable, WORKER],
+                            name="worker", timeout_s=60)
+  out, err = capfd.readouterr()
+  assert status == 2 and time.monotonic() - start < 20
+  assert err.strip().splitlines()[-1].startswith(
+      "worker: error: process 0 of 2 exited with status 4")
+  said = [line for line in out.splitlines() if line.startswith("DistributedError")]
+  assert len(said) == 1, out
+  assert said[0].startswith("DistributedError: process 0 of 2: not every process reached "
+                            "'never reached' within 3 s: "), said[0]
+
+
 def test_a_process_that_never_joins_fails_with_one_line_within_its_timeout():
   env = dict(os.environ, PYTHONPATH=ROOT)
   env.update({distributed.COORDINATOR_ENV: f"127.0.0.1:{processes.free_port()}",
