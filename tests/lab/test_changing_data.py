@@ -80,8 +80,8 @@ def test_run_with_free_space_saves_and_shows_the_cleared_map(tmp_path, capsys):
   assert len(ghost & _coords(voxels)) < len(ghost & _coords(plain))
 
 
-def test_true_poses_fuse_a_drifting_sequence_where_it_was_and_are_refused_elsewhere(
-    tmp_path, capsys):
+@pytest.mark.slow   # an end-to-end `run` with predictions, evaluation and a saved map (~15 s)
+def test_true_poses_fuse_a_drifting_sequence_where_it_was(tmp_path, capsys):
   seq = datasets.load_spec("office:0:drift", num_frames=4, height=HEIGHT, width=WIDTH)
   true_poses = np.asarray(seq.info["true_poses"], np.float32)
   assert np.abs(true_poses - seq.T_world_cam).max() > 1e-3       # the stored poses drift
@@ -99,6 +99,9 @@ def test_true_poses_fuse_a_drifting_sequence_where_it_was_and_are_refused_elsewh
   ev = metrics.evaluate_map(jf.read_map(state), datasets.gt_voxel_labels(seq),
                             len(seq.class_names), ignore_label=datasets.IGNORE_LABEL)
   assert ev["gt_only"] == 0 and ev["accuracy"] > 0.99
+
+
+def test_true_poses_are_refused_for_a_sequence_without_them(tmp_path, capsys):
   code, _, err = _main(["run", "--data", "office:0", "--frames", "2", "--height", str(HEIGHT),
                         "--width", str(WIDTH), "--true-poses", "--out", str(tmp_path)], capsys)
   lines = [line for line in err.splitlines() if line.startswith("jaxfusion")]
