@@ -180,6 +180,14 @@ def probe(state, frames, camera, rule, passes: int = PROBE_PASSES, reference=Non
   checkpoints taken out (its speed moves by 20 % over minutes). The copies are dropped; `state`
   and `reference` are untouched."""
   copy = lambda tree: jax.tree_util.tree_map(jnp.copy, tree)
+
+  def timed(tree, frame, seconds):
+    start = time.perf_counter()
+    tree = jf.fuse_frame(tree, frame, camera, rule)
+    jax.block_until_ready(tree.rows)
+    seconds.append(time.perf_counter() - start)
+    return tree
+
   jax.block_until_ready(jf.fuse_frame(copy(state), frames[0], camera, rule).rows)   # compile
   work, seconds = copy(state), []
   ref, ref_seconds = (None, None) if reference is None else (copy(reference), [])
@@ -188,14 +196,8 @@ def probe(state, frames, camera, rule, passes: int = PROBE_PASSES, reference=Non
   for _ in range(passes):
     for frame in frames:
       if ref is not None:
-        start = time.perf_counter()
-        ref = jf.fuse_frame(ref, frame, camera, rule)
-        jax.block_until_ready(ref.rows)
-        ref_seconds.append(time.perf_counter() - start)
-      start = time.perf_counter()
-      work = jf.fuse_frame(work, frame, camera, rule)
-      jax.block_until_ready(work.rows)
-      seconds.append(time.perf_counter() - start)
+        ref = timed(ref, frame, ref_seconds)
+      work = timed(work, frame, seconds)
   del work, ref
   out = {"probe_ms": 1e3 * float(np.median(seconds)),
          "probe_ms_all": [1e3 * x for x in seconds], "probe_huge_bytes": huge}
@@ -405,7 +407,7 @@ def table(result: dict) -> str:
   lines += ["", "| growth at frame | layer | capacity | frame s |", "|---|---|---|---|"]
   lines += [f"| {g['frame']} | {g['layer']} | {g['old']:,} → {g['new']:,} | {g['s']:.2f} |"
             for g in r["growths"]]
-  sizes = r.get("reference")     # runs before 12-08 had no reference map
+  sizes = r.get("reference")     # runs a–f (12-06, 12-07) had no reference map
   ref_head = "" if sizes is None else (
       f"reference map ms/frame (2^{int(sizes[0]).bit_length() - 1} slots, "
       f"2^{int(sizes[1]).bit_length() - 1} blocks) | probe / reference (median of frames) | ")

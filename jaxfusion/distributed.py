@@ -127,10 +127,15 @@ def initialize(coordinator_address: Optional[str] = None,
                                initialization_timeout=int(timeout_s) + _JAX_TIMEOUT_MARGIN_S,
                                heartbeat_timeout_seconds=int(heartbeat_s))
   except (RuntimeError, ValueError) as err:   # XlaRuntimeError is a RuntimeError
-    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-    raise DistributedError(f"{message}: {first[:300]}") from None
+    raise DistributedError(f"{message}: {_first_line(err)}") from None
   finally:
     joined.set()
+
+
+def _first_line(err: BaseException) -> str:
+  """The first line of a runtime's error (at most 300 characters), or its type's name."""
+  text = str(err).strip()
+  return text.splitlines()[0][:300] if text else type(err).__name__
 
 
 # JAX's initialization timeout lies this far past ours, so that the watchdog speaks first.
@@ -228,10 +233,9 @@ def barrier(name: str, timeout_s: Optional[float] = None) -> None:
     client.wait_at_barrier(f"jaxfusion/{next(_BARRIERS)}/{name}",
                            timeout_in_ms=int(1000 * timeout_s))
   except RuntimeError as err:   # XlaRuntimeError: DEADLINE_EXCEEDED, or a process failed
-    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
     raise DistributedError(f"process {jax.process_index()} of {jax.process_count()}: not every "
-                           f"process reached {name!r} within {timeout_s:g} s: {first[:300]}"
-                           ) from None
+                           f"process reached {name!r} within {timeout_s:g} s: "
+                           f"{_first_line(err)}") from None
 
 
 def shard_of(items: Sequence) -> list:
