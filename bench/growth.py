@@ -20,7 +20,10 @@ a first run fills a fresh cache folder, the second is timed.
 
 Writes `bench/results/growth.json` and prints a Markdown table. `--quick`: 300 frames at 60×80.
 `--compiles`: only what a growth compiles, program by program (`compile_costs`;
-`growth_compiles.json`).
+`growth_compiles.json`). `--steady`: only a `Mapper` frame beside `fuse_frame` between growths,
+in a plain loop and in one that waits for each frame (`steady_loops`; `growth_steady.json`);
+with `--host-apart`, XLA's threads on a CPU of their own, as a host beside an accelerator
+(`host_apart`; `growth_steady_apart.json`).
 """
 
 import argparse
@@ -158,6 +161,89 @@ def run_one(num_frames: int, height: int, width: int, factor: int, final=None) -
   }
 
 
+def host_apart() -> bool:
+  """Runs XLA's threads on the last CPU of this process and the calling (Python) thread on the
+  others, as a host beside an accelerator: the frames compute while the host works on the next
+  one, instead of the two taking the same cores in turn. Call before JAX is first used (its
+  thread pools start then, on the CPUs allowed at that moment; later threads of JAX's could
+  land on the host's CPUs). False, and nothing changed, with fewer than 2 CPUs or where
+  thread affinity cannot be set."""
+  if not hasattr(os, "sched_setaffinity"):
+    return False
+  cpus = sorted(os.sched_getaffinity(0))
+  if len(cpus) < 2:
+    return False
+  import jax
+  import jax.numpy as jnp
+  os.sched_setaffinity(0, {cpus[-1]})          # 0: this thread; threads it starts inherit it
+  jax.block_until_ready(jax.jit(lambda x: x @ x + 1)(jnp.ones((256, 256))))
+  os.sched_setaffinity(0, set(cpus[:-1]))
+  return True
+
+
+def steady_loops(num_frames: int = 600, height: int = 120, width: int = 160,
+                 capacities: tuple = (2**20, 2**14), turns: int = 12) -> dict:
+  """What a `Mapper` frame costs beside `fuse_frame` between growths: both maps allocated at
+  the walk's final capacities (`capacities = (slots, blocks)`; nothing grows), all programs
+  compiled first, then `turns` turns of the walk's frames in which each of four loops fuses
+  the next `num_frames // turns` frames — a plain loop (what users write: a call returns once
+  its frame is dispatched; one `block_until_ready` at the turn's end) and a loop that waits
+  for each frame (as `run_one` times frames), each of the `Mapper` and of `fuse_frame`.
+  Each loop has its own map of the same frames. Returns ms per frame, the medians over
+  turns, and the turns' values."""
+  import jax
+  import jaxfusion as jf
+  frames, camera = _data(num_frames, height, width)
+  rule = jf.rules.robust()
+  slots, blocks = (int(c) for c in capacities)
+
+  def mapper():
+    return jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=slots,
+                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=blocks))
+
+  def fixed():
+    return jf.init_map(capacity=slots, num_classes=K, voxel_size=0.05, rule=rule,
+                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=blocks))
+
+  mappers = {"mapper_plain": mapper(), "mapper_waiting": mapper()}
+  states = {"fuse_frame_plain": fixed(), "fuse_frame_waiting": fixed()}
+  for m in mappers.values():          # compiles the three programs (and warms the caches)
+    jax.block_until_ready(m.fuse(frames[0], camera))
+  for name in states:
+    states[name] = jax.block_until_ready(jf.fuse_frame(states[name], frames[0], camera, rule))
+  step = (num_frames - 1) // turns
+  times = {name: [] for name in ("mapper_plain", "fuse_frame_plain", "mapper_waiting",
+                                 "fuse_frame_waiting")}
+  for turn in range(turns):
+    chunk = frames[1 + turn * step:1 + (turn + 1) * step]
+    start = time.perf_counter()
+    for frame in chunk:
+      mappers["mapper_plain"].fuse(frame, camera)
+    jax.block_until_ready(mappers["mapper_plain"].state)
+    times["mapper_plain"].append(time.perf_counter() - start)
+    start = time.perf_counter()
+    state = states["fuse_frame_plain"]
+    for frame in chunk:
+      state = jf.fuse_frame(state, frame, camera, rule)
+    states["fuse_frame_plain"] = jax.block_until_ready(state)
+    times["fuse_frame_plain"].append(time.perf_counter() - start)
+    start = time.perf_counter()
+    for frame in chunk:
+      jax.block_until_ready(mappers["mapper_waiting"].fuse(frame, camera))
+    times["mapper_waiting"].append(time.perf_counter() - start)
+    start = time.perf_counter()
+    state = states["fuse_frame_waiting"]
+    for frame in chunk:
+      state = jax.block_until_ready(jf.fuse_frame(state, frame, camera, rule))
+    states["fuse_frame_waiting"] = state
+    times["fuse_frame_waiting"].append(time.perf_counter() - start)
+  ms = {name: [1e3 * t / step for t in values] for name, values in times.items()}
+  return {"frames_per_turn": step, "turns": turns, "height": height, "width": width,
+          "capacities": [slots, blocks],
+          "median_ms": {name: float(np.median(v)) for name, v in ms.items()},
+          "turn_ms": ms}
+
+
 def compile_costs(height: int = 120, width: int = 160, repeats: int = 3) -> list:
   """What a growth compiles, program by program, at the walk's frame size and its first
   capacities (2^16 slots, 2^12 blocks; fresh programs each time, medians of `repeats`
@@ -261,7 +347,31 @@ def main(argv=None) -> None:
   parser.add_argument("--compiles", action="store_true",
                       help="only what a growth compiles, program by program "
                            "(writes growth_compiles.json)")
+  parser.add_argument("--steady", action="store_true",
+                      help="only a Mapper frame beside fuse_frame between growths, in plain "
+                           "and waiting loops (writes growth_steady.json)")
+  parser.add_argument("--host-apart", action="store_true",
+                      help="with --steady: XLA's threads on one CPU, Python on the others "
+                           "(host_apart; writes growth_steady_apart.json)")
   args = parser.parse_args(argv)
+  if args.steady:
+    apart = args.host_apart and host_apart()
+    if args.host_apart and not apart:
+      raise SystemExit("--host-apart needs at least 2 CPUs and thread affinity")
+    result = steady_loops(*((120, 60, 80) if args.quick else ()), turns=4 if args.quick else 12)
+    result["host_apart"] = apart
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = "growth_steady" + ("_apart" if apart else "") + ("_quick" if args.quick else "")
+    (out / f"{name}.json").write_text(json.dumps(result, indent=1))
+    med = result["median_ms"]
+    print(f"| loop ({result['height']}×{result['width']}, {result['capacities'][0]} slots, "
+          f"{result['capacities'][1]} blocks{', host apart' if apart else ''}) | "
+          "Mapper ms/frame | fuse_frame ms/frame | ratio |\n|---|---|---|---|")
+    for loop in ("plain", "waiting"):
+      a, b = med[f"mapper_{loop}"], med[f"fuse_frame_{loop}"]
+      print(f"| {loop} | {a:.2f} | {b:.2f} | {a / b:.2f} |")
+    return
   if args.compiles:
     height, width = (60, 80) if args.quick else (120, 160)
     rows = compile_costs(height, width, repeats=1 if args.quick else 3)

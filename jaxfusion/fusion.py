@@ -433,8 +433,15 @@ def fuse_prepared_unchecked(state: MapState, prepared: PreparedFrame, camera: ca
   return _fuse_groups(state, px, prepared.groups, prepared.counts, chunk, camera, rule, None)
 
 
+def _fuse_prepared_counted(state, prepared, camera, rule):
+  state = fuse_prepared_unchecked(state, prepared, camera, rule)
+  return state, state.num_occupied
+
+
 prepare_frame = jax.jit(prepare_frame_unchecked)
-fuse_prepared_donating = jax.jit(fuse_prepared_unchecked, donate_argnums=0)
+# The semantic half, donated, as `(new state, () int32 its occupied count)`: the count is a
+# buffer of its own, so the `Mapper` can read it after the next frame has donated the state.
+fuse_prepared_donating = jax.jit(_fuse_prepared_counted, donate_argnums=0)
 
 
 # `fuse_frame_unchecked` compiled, with the map's buffers donated (what `fuse_frame` calls on

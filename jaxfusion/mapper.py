@@ -5,8 +5,10 @@ and a full map drops voxels, counted). `Mapper` holds a map and, before each fra
 frames, checks whether fusing it could push the load factor past `grow_at`; if so it first
 rehashes the map into a table `growth_factor` times as large with `grow_map`, which keeps every
 posterior, ᾱ and hit count exactly. So a long run never drops a voxel for lack of room, and the
-cost per frame stays that of `fuse_frame` between growths (the check is a host-side count in the
-common case; see `Mapper.fuse`).
+cost per frame stays near that of `fuse_frame` between growths: the check is host-side arithmetic
+in the common case, and it waits for no frame still running, so a plain loop of `Mapper.fuse`
+prepares a frame while the one before computes, as one of `fuse_frame` does (see
+`Mapper._fuse_prepared`).
 
 A growth is cheap because little is compiled for the new size: `Mapper.fuse` runs a frame as
 its capacity-free half (`fusion.prepare_frame`: projection and grouping, compiled once) and
@@ -25,7 +27,7 @@ Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
 import collections
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -87,12 +89,12 @@ def _missing(table: jax.Array, keys: jax.Array, first: jax.Array, num_groups: ja
   read in place by NumPy (`hashing.lookup_host`: nothing to compile for a new capacity);
   elsewhere it is `hashing.count_missing`, a small program per capacity."""
   if hashing.on_host(table):
-    count = int(num_groups)
+    count = _read(num_groups)
     rows = np.asarray(first)[:count]
     _, found = hashing.lookup_host(table, np.asarray(keys)[rows], max_probes=max_probes)
     return int(count - np.count_nonzero(found))
   is_group = jnp.arange(first.shape[0]) < num_groups
-  return int(hashing.count_missing(table, keys[first], is_group, max_probes=max_probes))
+  return _read(hashing.count_missing(table, keys[first], is_group, max_probes=max_probes))
 
 
 # How many of the latest calls the geometry layer's cheap room check remembers, and the load
@@ -102,9 +104,34 @@ _RECENT_CALLS = 32
 _SAFE_LOAD = 0.6
 
 
+class _InFlight(NamedTuple):
+  """A staged frame dispatched whose tables' counts the `Mapper` has not read yet."""
+  occupied: jax.Array                 # () int32 the semantic table's count after the frame
+  blocks: Optional[jax.Array]         # () int32 the block table's, or None (no geometry layer)
+  touched: jax.Array                  # () int32 voxels the frame touches (its preparation's)
+  voxels: int                         # its pixels: at most the voxels it adds
+  most_blocks: int                    # its ray samples' blocks: at most the blocks it adds
+
+
+def _is_ready(x: jax.Array) -> bool:
+  """Whether a device value is computed (reading it would not wait)."""
+  return x.is_ready()
+
+
+def _read(x: jax.Array) -> int:
+  """A device count as a Python int: every read the room checks make (it waits until the
+  count is computed)."""
+  return int(x)
+
+
 def _valid_depth_count(depth) -> int:
   depth = np.asarray(depth)
   return int(np.count_nonzero(np.isfinite(depth) & (depth > 0)))
+
+
+def _positive_depth_count(depth: np.ndarray) -> int:
+  """Pixels of positive depth (+∞ included): at least the valid ones, in one pass."""
+  return int(np.count_nonzero(depth > 0))
 
 
 class Mapper:
@@ -173,6 +200,11 @@ class Mapper:
     self._recent_blocks = collections.deque(maxlen=_RECENT_CALLS)
     self._most_blocks = 0
     self._blocks_before = None
+    # The staged frames whose counts are not read yet and the counts before them (`_counts`);
+    # they describe `state` while `_counted` (setting `state` clears it).
+    self._in_flight = collections.deque()
+    self._known = (0, None)
+    self._counted = False
     if self.state.capacity > self.max_capacity:
       raise ValueError(f"capacity {self.state.capacity} exceeds max_capacity {max_capacity}")
     # The geometry layer's settings for `fusion.prepare_frame` (None: fuse frames as one
@@ -186,6 +218,15 @@ class Mapper:
     self.frames_fused = 0
 
   @property
+  def state(self) -> state_lib.MapState:
+    return self._state
+
+  @state.setter
+  def state(self, state: state_lib.MapState) -> None:
+    self._state = state
+    self._counted = False      # a map set from outside `_fuse_prepared` is counted afresh
+
+  @property
   def capacity(self) -> int:
     return self.state.capacity
 
@@ -194,17 +235,17 @@ class Mapper:
     past `grow_at`."""
     if self.state.geometry is not None:
       self._ensure_geometry_room(depth, T_world_cam, camera)
-    occupied = int(self.state.num_occupied)
+    occupied = _read(self.state.num_occupied)
     limit = self.grow_at * self.state.capacity
     if occupied + _valid_depth_count(depth) <= limit:
       return   # even if every valid pixel were a new voxel (the usual case: no device work)
-    new = int(new_voxel_count(self.state, jnp.asarray(depth, jnp.float32),
+    new = _read(new_voxel_count(self.state, jnp.asarray(depth, jnp.float32),
                               jnp.asarray(T_world_cam, jnp.float32), camera))
     if occupied + new > limit:
       self._grow_for(occupied + new)
 
   def _ensure_geometry_room(self, depth, T_world_cam, camera, prepared=None,
-                            blocks=None) -> None:
+                            blocks=None, in_flight=0) -> bool:
     """Grows the geometry layer's block table before frames that could fill it past
     `grow_at`. The count of the blocks the frames add is skipped when even a call whose every
     ray sample found a new block stays under `grow_at`, or when four times the most blocks one
@@ -214,30 +255,32 @@ class Mapper:
     everyday one). The count is exact: of a `prepared` frame, the blocks it touches and, if
     those could overfill the table, the ones the table lacks (`_missing`); of a stack, every
     ray sample looked up (`tsdf.count_new_blocks`). `blocks`: the layer's block count, when
-    the caller has read it."""
+    the caller has read it, or a bound of it (`in_flight`: the count before frames still in
+    flight plus a bound of what they add, `Mapper._bounds`).
+
+    Returns:
+      False when the bounds leave the question open and frames are in flight (the exact count
+      needs their blocks: the caller reads them and asks again), else True.
+    """
     geometry = self.state.geometry
-    blocks = int(geometry.num_blocks) if blocks is None else blocks
-    if self._blocks_before is not None:
-      added = max(blocks - self._blocks_before, 0)
-      self._recent_blocks.append(added)
-      self._most_blocks = max(self._most_blocks, added)
-    self._blocks_before = blocks
+    if blocks is None:
+      blocks = _read(geometry.num_blocks)
+      self._note_blocks(blocks)
     limit = self.grow_at * geometry.capacity
-    frames, height, width = np.shape(depth)
-    stride = geometry.block_stride
-    most = frames * tsdf_lib.ray_samples(geometry.truncation_voxels, geometry.block_size) * (
-        -(-height // stride)) * (-(-width // stride))
+    most = self._most_new_blocks(depth)
     if blocks + most <= limit:
-      return
+      return True
     if (self._recent_blocks and blocks + 4 * max(max(self._recent_blocks), 1) <= limit
         and blocks + 4 * self._most_blocks <= max(_SAFE_LOAD, self.grow_at) * geometry.capacity):
-      return
+      return True
+    if in_flight:
+      return False
     if prepared is None:
       new = tsdf_lib.count_new_blocks(geometry, jnp.asarray(depth, jnp.float32),
                                       jnp.asarray(T_world_cam, jnp.float32), camera)
     else:
       touched = prepared.blocks
-      new = int(touched.num_groups)
+      new = _read(touched.num_groups)
       if blocks + new > limit:
         new = _missing(geometry.block_keys, touched.keys, touched.first, touched.num_groups,
                        max_probes=geometry.max_probes)
@@ -248,6 +291,50 @@ class Mapper:
     if capacity != geometry.capacity:
       self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
       self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
+    return True
+
+  def _most_new_blocks(self, depth) -> int:
+    """The blocks frames `(T, H, W)` could add at most: every ray sample a new block."""
+    geometry = self.state.geometry
+    frames, height, width = np.shape(depth)
+    stride = geometry.block_stride
+    return frames * tsdf_lib.ray_samples(geometry.truncation_voxels, geometry.block_size) * (
+        -(-height // stride)) * (-(-width // stride))
+
+  def _note_blocks(self, blocks: int) -> None:
+    """Records the blocks the last call added, from the layer's count `blocks` after it."""
+    if self._blocks_before is not None:
+      added = max(blocks - self._blocks_before, 0)
+      self._recent_blocks.append(added)
+      self._most_blocks = max(self._most_blocks, added)
+    self._blocks_before = blocks
+
+  def _counts(self, keep: int = 1) -> tuple:
+    """`(occupied, blocks, in_flight)`: the tables' exact counts before the staged frames
+    still in flight (`_InFlight`, oldest first; `blocks` None without a geometry layer).
+    Reads the counts of the frames already computed, and of the older ones until at most
+    `keep` are left (waiting for their programs to finish: with `keep=1`, the frame before
+    the latest, which has had the latest's host work to finish in). A map this `Mapper` did
+    not leave (another call or the user replaced `state`) is read afresh."""
+    geometry = self.state.geometry
+    if not self._counted:
+      self._in_flight.clear()
+      self._known = (_read(self.state.num_occupied),
+                     None if geometry is None else _read(geometry.num_blocks))
+      if geometry is not None:
+        self._note_blocks(self._known[1])
+      self._counted = True
+    while self._in_flight:
+      frame = self._in_flight[0]
+      if len(self._in_flight) <= keep and not all(
+          _is_ready(x) for x in frame[:2] if x is not None):
+        break
+      self._in_flight.popleft()
+      self._known = (_read(frame.occupied),
+                     None if frame.blocks is None else _read(frame.blocks))
+      if frame.blocks is not None:
+        self._note_blocks(self._known[1])
+    return self._known + (tuple(self._in_flight),)
 
   def fuse(self, frame: fusion.Frame, camera: camera_lib.Camera, *,
            frame_id=None) -> state_lib.MapState:
@@ -256,7 +343,9 @@ class Mapper:
     The frame runs as two or three programs (`fusion.prepare_frame`, then the semantic and
     geometry tables' halves: see `fusion.PreparedFrame`), so a growth recompiles only the
     grown table's half; with a `gate_semantics` geometry layer it runs as one `fuse_frame`.
-    The result is `fuse_frame`'s.
+    The result is `fuse_frame`'s. The call returns once the frame is dispatched (JAX's
+    asynchronous dispatch): it waits for the frame before only when the room check cannot
+    be settled without that frame's counts.
 
     `frame_id` names the frame for `unfuse` / `reintegrate` when frames are kept (default: the
     number of frames fused before it)."""
@@ -278,47 +367,80 @@ class Mapper:
 
   def _fuse_prepared(self, frame: fusion.Frame, depth: np.ndarray, camera) -> None:
     """`fuse`'s staged path: prepare the frame (compiled once), make room by what it touches,
-    then run each table's half."""
+    then run each table's half.
+
+    The room check waits for nothing while its bounds settle it: the tables' counts are
+    those of the frames already computed, and each frame still in flight counts as adding its
+    valid pixels' worth of voxels (and blocks by the geometry layer's bounds). So in a plain
+    loop the host prepares a frame while the one before still runs, as with `fuse_frame`.
+    Only a frame the bounds cannot place waits for the counts of the frame before it."""
     check = fusion._check_inputs   # pylint: disable=protected-access
     check(self.state, frame, camera, self.rule, batch_dims=0, sample=True)
-    # The tables' counts are read before the frame's preparation is dispatched: read after
-    # it, each waits for that program to run (about a millisecond a frame on 2 cores).
-    geometry = self.state.geometry
-    occupied, blocks = jax.device_get((self.state.num_occupied,
-                                       None if geometry is None else geometry.num_blocks))
+    occupied, blocks, in_flight = self._counts()
     if camera is not self._camera[0]:
       # Its scalars as device arrays once, not converted by each of three programs per frame.
       self._camera = (camera, jax.tree.map(jnp.float32, camera))
     camera = self._camera[1]
     prepared = fusion.prepare_frame(self.state.voxel_size, frame, camera, self.rule,
                                     self._settings)
-    self._make_room(prepared, int(occupied), None if blocks is None else int(blocks), depth)
+    if not self._make_room(prepared, occupied, blocks, depth, in_flight):
+      occupied, blocks, in_flight = self._counts(keep=0)
+      self._make_room(prepared, occupied, blocks, depth, in_flight)
     geometry, frame = self.state.geometry, prepared.frame
-    state = fusion.fuse_prepared_donating(self.state.replace(geometry=None), prepared, camera,
-                                          self.rule)
+    state, occupied = fusion.fuse_prepared_donating(self.state.replace(geometry=None),
+                                                    prepared, camera, self.rule)
+    most_blocks = 0
     if geometry is not None:
-      geometry = tsdf_lib.integrate_blocks_donating(geometry, prepared.blocks, frame.depth,
-                                                    frame.T_world_cam, camera)
+      most_blocks = self._most_new_blocks(depth[None])
+      geometry, blocks = tsdf_lib.integrate_blocks_donating(
+          geometry, prepared.blocks, frame.depth, frame.T_world_cam, camera)
     self.state = state.replace(geometry=geometry)
+    self._counted = True
+    self._in_flight.append(_InFlight(occupied, None if geometry is None else blocks,
+                                     prepared.groups.num_groups, depth.size, most_blocks))
+
+  def _bounds(self, in_flight: tuple) -> tuple:
+    """`(voxels, blocks)`: what the frames `in_flight` add to the tables, without waiting.
+    Voxels at most: those a frame touches once its preparation has run (it usually has while
+    its tables' halves still run), else its pixels. Blocks as the geometry layer's room
+    check expects of a call (`_ensure_geometry_room`: four times the most one of the recent
+    calls added), at most its ray samples."""
+    voxels = blocks = 0
+    expected = 4 * max(max(self._recent_blocks), 1) if self._recent_blocks else None
+    for frame in in_flight:
+      voxels += _read(frame.touched) if _is_ready(frame.touched) else frame.voxels
+      blocks += frame.most_blocks if expected is None else min(frame.most_blocks, expected)
+    return voxels, blocks
 
   def _make_room(self, prepared: fusion.PreparedFrame, occupied: int, blocks: Optional[int],
-                 depth: np.ndarray) -> None:
+                 depth: np.ndarray, in_flight: tuple) -> bool:
     """Grows a table before a prepared frame that could push it past `grow_at`. In turn, until
-    one leaves room: a host-side bound (every pixel, every ray sample a new voxel or block;
-    for the geometry layer also the recent frames' additions: no device work), the
-    voxels and blocks the frame touches (its preparation's counts), and the exact count of
-    those the table lacks (`_missing`, a small program per capacity). `occupied` and
-    `blocks` are the tables' counts before the frame."""
+    one leaves room: a host-side bound (every pixel of positive depth a new voxel, every ray
+    sample a new block; for the geometry layer also the recent frames' additions: no device
+    work), the voxels and blocks the frame touches (its preparation's counts), and the exact
+    count of those the table lacks (`_missing`, a small program per capacity). `occupied`
+    and `blocks` are the tables' counts before the frames `in_flight`, whose additions
+    `_bounds` adds. Returns False, having changed nothing, when only exact counts can settle
+    it and frames are in flight (the caller then reads them, waiting, and asks again)."""
+    added, added_blocks = self._bounds(in_flight)
     if self.state.geometry is not None:
       # The pose and camera serve the stack's count only; a prepared frame has its own.
-      self._ensure_geometry_room(depth[None], None, None, prepared, blocks)
+      if not self._ensure_geometry_room(depth[None], None, None, prepared,
+                                        blocks + added_blocks, in_flight=len(in_flight)):
+        return False
     limit = self.grow_at * self.state.capacity
+    if (occupied + added + depth.size <= limit
+        or occupied + added + _positive_depth_count(depth) <= limit):
+      return True
+    if in_flight:
+      return False
     groups = prepared.groups
-    if occupied + depth.size <= limit or occupied + int(groups.num_groups) <= limit:
-      return
+    if occupied + _read(groups.num_groups) <= limit:
+      return True
     first = groups.first_pixel[:prepared.counts.shape[0]]
     self._grow_for(occupied + _missing(self.state.keys, prepared.keys, first, groups.num_groups,
                                        max_probes=self.state.max_probes))
+    return True
 
   def _grow_for(self, need: int) -> None:
     """Grows the semantic table until `need` voxels stay under `grow_at` of it (or it reaches

@@ -542,8 +542,14 @@ def integrate_blocks_unchecked(state: TSDFState, blocks: FrameBlocks, depth: jax
 
 _integrate_donating = jax.jit(integrate_unchecked, donate_argnums=0)
 _integrate_copying = jax.jit(integrate_unchecked)
-# The table half alone, donated: what the `Mapper` runs after `frame_blocks`.
-integrate_blocks_donating = jax.jit(integrate_blocks_unchecked, donate_argnums=0)
+def _integrate_blocks_counted(state, blocks, depth, T_world_cam, camera):
+  state = integrate_blocks_unchecked(state, blocks, depth, T_world_cam, camera)
+  return state, state.num_blocks
+
+
+# The table half alone, donated, as `(new layer, () int32 its block count)`: what the `Mapper`
+# runs after `frame_blocks` (the count, a buffer of its own, outlives the next donation).
+integrate_blocks_donating = jax.jit(_integrate_blocks_counted, donate_argnums=0)
 
 
 def check_frame_geometry(depth, T_world_cam, camera, *, batch_dims: int = 0) -> None:

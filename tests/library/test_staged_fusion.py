@@ -9,6 +9,7 @@ import pytest
 
 import jaxfusion as jf
 from jaxfusion import fusion
+from jaxfusion import mapper as mapper_lib
 from jaxfusion import state as state_lib
 from jaxfusion import tsdf
 
@@ -181,3 +182,55 @@ def test_a_context_rule_with_colour_fuses_through_the_staged_frame_as_fuse_frame
     mapper.fuse(frame, CAMERA)
     fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
   _assert_same_maps(mapper.state, fixed)
+
+
+def test_a_frame_whose_room_is_sure_waits_for_nothing_the_frame_before_computes(monkeypatch):
+  """In a plain loop the host checks and dispatches a frame while the one before still runs:
+  the room check counts that frame by bounds (its pixels, the blocks recent frames added), so
+  while they settle it nothing is read from the device. A device that is always behind is
+  simulated by `mapper._is_ready` (no count is ever computed yet), and every read the room
+  checks make goes through `mapper._read`, which fails here while armed. A map whose bounds
+  do not settle it reads (caught: the first half of the test can fail), and a walk that grows
+  with every frame behind still grows before it fills and ends as `fuse_frame`'s map, bit
+  for bit."""
+  rule = jf.rules.robust(beta=0.3)
+  frames = _frames(12)
+  monkeypatch.setattr(mapper_lib, "_is_ready", lambda x: False)
+  armed, read = [False], mapper_lib._read
+
+  def guarded_read(x):
+    if armed[0]:
+      raise RuntimeError("the room check read a device count")
+    return read(x)
+
+  monkeypatch.setattr(mapper_lib, "_read", guarded_read)
+
+  def fuse_second_frame_unread(capacity):
+    mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=capacity,
+                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**14))
+    mapper.fuse(frames[0], CAMERA)
+    armed[0] = True
+    try:
+      mapper.fuse(frames[1], CAMERA)
+    finally:
+      armed[0] = False
+    return mapper
+
+  roomy = fuse_second_frame_unread(2**16)      # 1 100 voxels a frame in 32 768 of room
+  assert len(roomy._in_flight) == 2 and roomy.growths == []
+  with pytest.raises(RuntimeError, match="read a device count"):
+    fuse_second_frame_unread(2**12)            # 2 048 of room: frame 0's count is needed
+
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**11,
+                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**8))
+  for frame in frames:
+    mapper.fuse(frame, CAMERA)
+    assert len(mapper._in_flight) <= 2
+  assert mapper.growths and mapper.geometry_growths
+  fixed = jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05,
+                                                  capacity=mapper.state.geometry.capacity))
+  for frame in frames:
+    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
+  _assert_same_maps(mapper.state, fixed)
+  assert int(mapper.state.num_occupied) <= mapper.grow_at * mapper.capacity
