@@ -10,7 +10,10 @@ On the bench room (`bench.scene`, 640×480), in one process:
 3. the MC front end: the shipped network's M dropout samples of one RGB frame
    (`models.sampling.mc_samples`, as `bench.suite.sampler_rows`; K is the net's) and
    `mc_moments` of an `(M, H, W, 13)` sample stack (as `bench.suite.mc_rows`);
-4. `fuse_batch` (D+R) of B sequences × T frames at 240×320, from empty maps, in frames/s.
+4. `fuse_batch` (D+R) of B sequences × T frames at 240×320, from empty maps, in frames/s;
+5. a `Mapper` frame (both layers, between growths) beside `fuse_frame`'s in a plain loop of the
+   corridor walk (`bench.growth.steady_loops`, 120×160): where the device runs apart from the
+   host, a frame's host work then overlaps the frame before.
 
 Every call is ended with `block_until_ready`; each figure is the median of the repeats after a
 warm-up call. Writes `<out>/device.json` (default `bench/results/`) and prints a Markdown table.
@@ -57,6 +60,9 @@ class Config:
   batch_frames: int = 4           # T
   batch_height: int = 240
   batch_width: int = 320
+  steady_frames: int = 241        # the Mapper's loop: frames, turns, (slots, blocks)
+  steady_turns: int = 6
+  steady_capacities: tuple = (2**20, 2**14)
 
   @classmethod
   def full(cls):
@@ -67,7 +73,8 @@ class Config:
     return cls(height=60, width=80, num_classes=7, capacity=2**12, voxel_size=0.1,
                warm_frames=1, frames=2, repeats=2, tsdf_voxel_sizes=(0.1,),
                tsdf_capacity=2**10, mc_samples=2, batch=2, batch_frames=2, batch_height=30,
-               batch_width=40)
+               batch_width=40, steady_frames=9, steady_turns=2,
+               steady_capacities=(2**16, 2**12))
 
 
 def _median_s(fn: Callable[[], object], repeats: int) -> float:
@@ -175,6 +182,15 @@ def batch_row(config: Config) -> dict:
           "rule": "robust_dr", "ms_per_call": 1e3 * s, "frames_per_s": b * t / s}
 
 
+def mapper_row(config: Config) -> dict:
+  """A `Mapper` frame beside `fuse_frame`'s, plain and waiting loops (`steady_loops`)."""
+  from bench import growth
+  result = growth.steady_loops(config.steady_frames, 120, 160, config.steady_capacities,
+                               turns=config.steady_turns)
+  return {"frames_per_turn": result["frames_per_turn"], "turns": result["turns"],
+          "capacities": result["capacities"], **result["median_ms"]}
+
+
 def run(config: Config, *, out_dir=None, log=print) -> dict:
   """Measures everything in the module docstring; writes `<out_dir>/device.json` if given."""
   t0 = time.perf_counter()
@@ -191,6 +207,8 @@ def run(config: Config, *, out_dir=None, log=print) -> dict:
   log(f"mc: {results['mc']}")
   results["fuse_batch"] = batch_row(config)
   log(f"fuse_batch: {results['fuse_batch']}")
+  results["mapper"] = mapper_row(config)
+  log(f"mapper: {results['mapper']}")
   results["wall_s"] = time.perf_counter() - t0
   if out_dir is not None:
     out = pathlib.Path(out_dir)
@@ -233,6 +251,11 @@ def to_markdown(results: dict) -> str:
   b = results["fuse_batch"]
   lines.append(f"| fuse_batch D+R, B={b['B']}×T={b['T']}, {b['width']}×{b['height']}: frames/s | "
                f"{_fmt(b['frames_per_s'])} | — |")
+  m = results["mapper"]
+  for loop in ("plain", "waiting"):
+    lines.append(f"| Mapper (both layers) beside fuse_frame, 160×120, a {loop} loop: ms/frame "
+                 f"| {_fmt(m[f'mapper_{loop}'])} against {_fmt(m[f'fuse_frame_{loop}'])} "
+                 f"({m[f'mapper_{loop}'] / m[f'fuse_frame_{loop}']:.2f}×) | — |")
   return "\n".join(lines)
 
 

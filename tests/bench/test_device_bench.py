@@ -21,15 +21,17 @@ def _times(results: dict) -> list:
     if "skipped" not in row:
       found += [(f"mc.{name}.{k}", row[k]) for k in ("ms_per_frame", "frames_per_s")]
   found += [(f"fuse_batch.{k}", results["fuse_batch"][k]) for k in ("ms_per_call", "frames_per_s")]
+  found += [(f"mapper.{k}", results["mapper"][k]) for k in (
+      "mapper_plain", "fuse_frame_plain", "mapper_waiting", "fuse_frame_waiting")]
   return found
 
 
-@pytest.mark.slow   # 13 programs compiled (six rules, TSDF, mesh, net, moments, batch): ~25 s
+@pytest.mark.slow   # 16 programs compiled (six rules, TSDF, mesh, net, moments, batch, Mapper)
 def test_quick_run_writes_every_measurement(tmp_path, capsys):
   device.main(["--quick", "--out", str(tmp_path)])
   results = json.loads((tmp_path / "device.json").read_text())
   assert {"backend", "machine", "config", "nvblox", "fuse_frame", "tsdf", "mc",
-          "fuse_batch"} <= set(results)
+          "fuse_batch", "mapper"} <= set(results)
   assert results["backend"]["default_backend"] and results["backend"]["devices"]
   assert set(results["fuse_frame"]) == set(device.jf.rules.PAPER_RULES)
   assert [r["voxel_size"] for r in results["tsdf"]] == [0.1]
@@ -39,3 +41,5 @@ def test_quick_run_writes_every_measurement(tmp_path, capsys):
     assert isinstance(value, float) and math.isfinite(value) and value > 0, (name, value)
   table = capsys.readouterr().out
   assert "nvblox, RTX 3090, published" in table and "| fuse_frame D+R" in table
+  assert "| Mapper (both layers) beside fuse_frame, 160×120, a plain loop" in table
+  assert results["mapper"]["turns"] == 2 and results["mapper"]["frames_per_turn"] == 4

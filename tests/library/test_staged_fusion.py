@@ -52,45 +52,59 @@ def _assert_same_maps(a, b):
       np.testing.assert_array_equal(weight, gb[key][1])
 
 
-def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves(monkeypatch):
+_WATCHED = (("prepare", fusion.prepare_frame), ("semantic", fusion.fuse_prepared_donating),
+            ("geometry", tsdf.integrate_blocks_donating), ("rehash", state_lib.grown_map),
+            ("block rehash", tsdf.grown_tsdf), ("move", jf.hashing.moved_rows))
+
+
+def _growing_walk(rule, frames):
+  """Both layers (and free space) grow at frame 1; what each watched program compiled."""
+  before = {name: fun._cache_size() for name, fun in _WATCHED}
+  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, free_space=True,
+                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
+  for frame in frames:
+    mapper.fuse(frame, CAMERA)
+  assert mapper.growths == [(1, 2**12, 2**14)]
+  assert mapper.geometry_growths == [(1, 2**9, 2**11)]
+  return mapper, {name: fun._cache_size() - before[name] for name, fun in _WATCHED}
+
+
+def _fixed_map(rule, frames):
+  """The walk's frames fused with `fuse_frame` into a map of its final capacities."""
+  fixed = jf.init_map(capacity=2**14, num_classes=K, voxel_size=0.05, rule=rule,
+                      free_space=True,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**11))
+  for frame in frames:
+    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
+  return fixed
+
+
+def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves():
   """Both layers (and free space) grow at frame 1 (frame 0 leaves room, so the prepared
   geometry settings must outlive the layer's donation); the map equals a map of the final
   capacities fused frame by frame with `fuse_frame`, bit for bit, and across the growths the
-  frame's half compiled once, the rehashes not at all (host NumPy). Then the same walk with
-  the rows moved as large tables' are (`hashing.moved_rows`, once per layer's growth): the
-  same map, and not one program more for the halves, so the moved arrays are placed as the
-  old ones (a committed copy would compile each table half again)."""
+  frame's half compiled once, the rehashes not at all (host NumPy)."""
   rule = jf.rules.robust(beta=0.3)
   frames = _frames(5)
-  watched = (("prepare", fusion.prepare_frame), ("semantic", fusion.fuse_prepared_donating),
-             ("geometry", tsdf.integrate_blocks_donating), ("rehash", state_lib.grown_map),
-             ("block rehash", tsdf.grown_tsdf), ("move", jf.hashing.moved_rows))
-
-  def walk():
-    before = {name: fun._cache_size() for name, fun in watched}
-    mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, free_space=True,
-                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
-    for frame in frames:
-      mapper.fuse(frame, CAMERA)
-    assert mapper.growths == [(1, 2**12, 2**14)]
-    assert mapper.geometry_growths == [(1, 2**9, 2**11)]
-    return mapper, {name: fun._cache_size() - before[name] for name, fun in watched}
-
-  mapper, grown = walk()
+  mapper, grown = _growing_walk(rule, frames)
   assert grown == {"prepare": 1, "semantic": 2, "geometry": 2, "rehash": 0, "block rehash": 0,
                    "move": 0}
-  fixed = jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
-                      free_space=True,
-                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05,
-                                                  capacity=mapper.state.geometry.capacity))
-  for frame in frames:
-    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
-  _assert_same_maps(mapper.state, fixed)
+  _assert_same_maps(mapper.state, _fixed_map(rule, frames))
+
+
+@pytest.mark.slow   # the walk twice (its first, fresh, compiles what the second must not)
+def test_rows_moved_as_large_tables_are_compile_no_table_half_again(monkeypatch):
+  """The same walk with the rows moved as large tables' are (`hashing.moved_rows`, once per
+  layer's growth): the same map, and not one program more for the halves, so the moved arrays
+  are placed as the old ones (a committed copy would compile each table half again)."""
+  rule = jf.rules.robust(beta=0.3)
+  frames = _frames(5)
+  _growing_walk(rule, frames)          # the halves at both capacities, compiled
   monkeypatch.setattr(jf.hashing, "HOST_MOVE_BYTES", 0)
-  mapper, grown = walk()
+  mapper, grown = _growing_walk(rule, frames)
   assert grown == {"prepare": 0, "semantic": 0, "geometry": 0, "rehash": 0, "block rehash": 0,
                    "move": 2}
-  _assert_same_maps(mapper.state, fixed)
+  _assert_same_maps(mapper.state, _fixed_map(rule, frames))
 
 
 def test_the_host_rehash_equals_the_compiled_one():
@@ -194,7 +208,7 @@ def test_a_frame_whose_room_is_sure_waits_for_nothing_the_frame_before_computes(
   with every frame behind still grows before it fills and ends as `fuse_frame`'s map, bit
   for bit."""
   rule = jf.rules.robust(beta=0.3)
-  frames = _frames(12)
+  frames = _frames(5)
   monkeypatch.setattr(mapper_lib, "_is_ready", lambda x: False)
   armed, read = [False], mapper_lib._read
 
@@ -221,16 +235,7 @@ def test_a_frame_whose_room_is_sure_waits_for_nothing_the_frame_before_computes(
   with pytest.raises(RuntimeError, match="read a device count"):
     fuse_second_frame_unread(2**12)            # 2 048 of room: frame 0's count is needed
 
-  mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**11,
-                     geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**8))
-  for frame in frames:
-    mapper.fuse(frame, CAMERA)
-    assert len(mapper._in_flight) <= 2
-  assert mapper.growths and mapper.geometry_growths
-  fixed = jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
-                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05,
-                                                  capacity=mapper.state.geometry.capacity))
-  for frame in frames:
-    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
-  _assert_same_maps(mapper.state, fixed)
-  assert int(mapper.state.num_occupied) <= mapper.grow_at * mapper.capacity
+  # The first test's walk (its programs are compiled already), every frame behind.
+  mapper, _ = _growing_walk(rule, frames)
+  assert len(mapper._in_flight) <= 2
+  _assert_same_maps(mapper.state, _fixed_map(rule, frames))
