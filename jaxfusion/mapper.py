@@ -344,8 +344,9 @@ class Mapper:
     geometry tables' halves: see `fusion.PreparedFrame`), so a growth recompiles only the
     grown table's half; with a `gate_semantics` geometry layer it runs as one `fuse_frame`.
     The result is `fuse_frame`'s. The call returns once the frame is dispatched (JAX's
-    asynchronous dispatch): it waits for the frame before only when the room check cannot
-    be settled without that frame's counts.
+    asynchronous dispatch); it waits for the frame two before it (the host stays one frame
+    ahead), and for the one before only when the room check cannot be settled without that
+    frame's counts.
 
     `frame_id` names the frame for `unfuse` / `reintegrate` when frames are kept (default: the
     number of frames fused before it)."""
@@ -370,10 +371,11 @@ class Mapper:
     then run each table's half.
 
     The room check waits for nothing while its bounds settle it: the tables' counts are
-    those of the frames already computed, and each frame still in flight counts as adding its
-    valid pixels' worth of voxels (and blocks by the geometry layer's bounds). So in a plain
-    loop the host prepares a frame while the one before still runs, as with `fuse_frame`.
-    Only a frame the bounds cannot place waits for the counts of the frame before it."""
+    those of the frames already computed, and each frame still in flight counts as adding the
+    voxels its preparation found (its pixels until that has run) and blocks by the geometry
+    layer's expectation (`_bounds`). So in a plain loop the host prepares a frame while the
+    one before still runs, as with `fuse_frame`. Only a frame the bounds cannot place waits
+    for the counts of the frame before it."""
     check = fusion._check_inputs   # pylint: disable=protected-access
     check(self.state, frame, camera, self.rule, batch_dims=0, sample=True)
     occupied, blocks, in_flight = self._counts()
