@@ -129,11 +129,6 @@ def _valid_depth_count(depth) -> int:
   return int(np.count_nonzero(np.isfinite(depth) & (depth > 0)))
 
 
-def _positive_depth_count(depth: np.ndarray) -> int:
-  """Pixels of positive depth (+∞ included): at least the valid ones, in one pass."""
-  return int(np.count_nonzero(depth > 0))
-
-
 class Mapper:
   """A map that grows before it could fill up (see the module docstring).
 
@@ -417,7 +412,7 @@ class Mapper:
   def _make_room(self, prepared: fusion.PreparedFrame, occupied: int, blocks: Optional[int],
                  depth: np.ndarray, in_flight: tuple) -> bool:
     """Grows a table before a prepared frame that could push it past `grow_at`. In turn, until
-    one leaves room: a host-side bound (every pixel of positive depth a new voxel, every ray
+    one leaves room: a host-side bound (every valid pixel a new voxel, every ray
     sample a new block; for the geometry layer also the recent frames' additions: no device
     work), the voxels and blocks the frame touches (its preparation's counts), and the exact
     count of those the table lacks (`_missing`, a small program per capacity). `occupied`
@@ -432,7 +427,7 @@ class Mapper:
         return False
     limit = self.grow_at * self.state.capacity
     if (occupied + added + depth.size <= limit
-        or occupied + added + _positive_depth_count(depth) <= limit):
+        or occupied + added + _valid_depth_count(depth) <= limit):
       return True
     if in_flight:
       return False
