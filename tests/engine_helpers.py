@@ -2,11 +2,20 @@
 (§2.1, §5) says the engine must survive (holes, NaN/inf depth, one-hot pixels, zero variance)."""
 
 import numpy as np
+import pytest
 
 import jaxfusion as jf
 
 PAPER_RULES = ("sum_probs", "sum_labels", "bayes", "robust_r", "robust_d", "robust_dr")
 DIRICHLET_RULES = ("robust_d", "robust_dr")
+
+
+
+def main_tier_keeps(values, keep):
+  """`values` as pytest parameters, those not in `keep` in the slow tier: a property checked
+  over many cases keeps a few in the main tier (its time budget) and every case in CI."""
+  return [v if v in keep else pytest.param(v, marks=pytest.mark.slow) for v in values]
+
 
 HEIGHT, WIDTH, NUM_CLASSES = 6, 8, 4
 CAMERA = jf.Camera(6.0, 6.0, 3.5, 2.5)

@@ -89,7 +89,8 @@ def test_rendered_depth_backprojects_onto_the_surfaces():
     assert np.all(err <= 6 * sigma + 1e-3)
 
 
-@pytest.mark.parametrize("env,trajectory", [("house", 2), ("office", 0)])
+@pytest.mark.parametrize("env,trajectory", [("house", 2),
+                                             pytest.param("office", 0, marks=pytest.mark.slow)])
 def test_tiled_cast_equals_casting_against_everything(env, trajectory):
   world = synthetic.make_scene(env, seed=1)
   cam = synthetic.default_camera(H, W)

@@ -164,7 +164,7 @@ def numpy_majority(seq):
           "hits": np.array([votes[k].sum() for k in keys], np.int32)}
 
 
-@hypothesis.settings(max_examples=12, deadline=None)
+@hypothesis.settings(max_examples=8, deadline=None)
 @hypothesis.given(
     labels=st.lists(st.integers(-1, 3), min_size=3 * 4 * 6, max_size=3 * 4 * 6),
     holes=st.lists(st.booleans(), min_size=3 * 4 * 6, max_size=3 * 4 * 6),

@@ -50,7 +50,7 @@ def test_every_feature_matches_numpy():
     np.testing.assert_allclose(got[..., f], want[..., f], atol=2e-6, rtol=1e-5, err_msg=name)
 
 
-@hypothesis.settings(max_examples=8, deadline=None)
+@hypothesis.settings(max_examples=5, deadline=None)
 @hypothesis.given(seed=st.integers(0, 2**16), h_=st.integers(3, 11), w_=st.integers(3, 11),
                   holes=st.floats(0.0, 0.4), floats=st.booleans())
 def test_random_frames_match_numpy(seed, h_, w_, holes, floats):

@@ -79,7 +79,7 @@ def test_label_counts_come_back_exactly():
   np.testing.assert_array_equal(_rows_at(state, "score"), _rows_at(want, "score"))
 
 
-@hypothesis.settings(max_examples=12, deadline=None)
+@hypothesis.settings(max_examples=6, deadline=None)
 @hypothesis.given(seeds=st.lists(st.integers(0, 10**6), min_size=2, max_size=4, unique=True),
                   which=st.integers(0, 3), onehot=st.booleans())
 def test_unfuse_after_fuse_is_the_identity(seeds, which, onehot):

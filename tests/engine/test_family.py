@@ -56,35 +56,40 @@ def _table(rng):
                                 len(jf.rules.glfs_lib.ANGLE_EDGES) + 1)).astype(np.float32)
 
 
-def test_glfs_bayes_and_r_are_members_bit_for_bit():
-  rng = np.random.default_rng(0)
-  frames = _frames(1)
-  glfs = jf.rules.glfs(_table(rng))
-  _same(_fuse(family_lib.of_glfs(glfs), frames), _fuse(glfs, frames))
-  _same(_fuse(jf.rules.family(), frames), _fuse(jf.rules.bayes(), frames))
-  beta = rng.uniform(0.05, 0.5, K)
-  _same(_fuse(jf.rules.family({"beta": beta}), frames),
-        _fuse(jf.rules.robust(beta=beta, dirichlet=False), frames))
-  assert family_lib.terms(family_lib.of_glfs(glfs)) == ("table",)
-  assert jf.rules.display_name(jf.rules.family()) == "Family"
-
-
-def test_learned_rules_are_members_bit_for_bit():
-  rng = np.random.default_rng(1)
-  frames = _frames(2)
-  v1 = jf.rules.learned({"theta": rng.normal(0, 1, 6), "bias": 1.0, "mix": 0.6,
-                         "gate": [2.0, -1.0, 0.5], "beta": rng.uniform(0, 0.5, K)})
-  _same(_fuse(family_lib.of_learned(v1), frames), _fuse(v1, frames))
-  names = ("depth", "label_edge", "luminance")
+def _member_and_rule(case, rng):
+  """`(family member, the rule it must equal bit for bit)` for a shipped rule."""
+  if case == "glfs":
+    glfs = jf.rules.glfs(_table(rng))
+    assert family_lib.terms(family_lib.of_glfs(glfs)) == ("table",)
+    return family_lib.of_glfs(glfs), glfs
+  if case == "bayes":
+    assert jf.rules.display_name(jf.rules.family()) == "Family"
+    return jf.rules.family(), jf.rules.bayes()
+  if case == "robust_r":
+    beta = rng.uniform(0.05, 0.5, K)
+    return jf.rules.family({"beta": beta}), jf.rules.robust(beta=beta, dirichlet=False)
+  if case == "learned":
+    v1 = jf.rules.learned({"theta": rng.normal(0, 1, 6), "bias": 1.0, "mix": 0.6,
+                           "gate": [2.0, -1.0, 0.5], "beta": rng.uniform(0, 0.5, K)})
+    return family_lib.of_learned(v1), v1
+  names = ("depth", "label_edge", "luminance")      # a learned rule with context
   v2 = jf.rules.learned({"theta": rng.normal(0, 1, (K, 6)), "bias": rng.normal(0, 1, K),
                          "context_theta": rng.normal(0, 1, (K, 3)), "mix": 0.3,
                          "gate": [1.0, 0.5, -0.5, 0.3, -0.2], "beta": 0.2}, context=names)
   member = family_lib.of_learned(v2)
   assert member.context == names and member.remove is None
-  _same(_fuse(member, frames), _fuse(v2, frames))
+  return member, v2
 
 
-@pytest.mark.parametrize("name", ["robust_d", "robust_dr"])
+@pytest.mark.parametrize("case", h.main_tier_keeps(
+    ["glfs", "bayes", "robust_r", "learned", "learned_context"], ("glfs", "learned_context")))
+def test_shipped_rules_are_members_bit_for_bit(case):
+  member, rule = _member_and_rule(case, np.random.default_rng(0))
+  frames = _frames(1)
+  _same(_fuse(member, frames), _fuse(rule, frames))
+
+
+@pytest.mark.parametrize("name", h.main_tier_keeps(["robust_d", "robust_dr"], ("robust_dr",)))
 def test_dirichlet_rules_are_members(name):
   frames = _frames(3)
   beta = 0.3 if name == "robust_dr" else None
@@ -140,7 +145,7 @@ def _compare(rule, params, frames):
                              atol=2e-5, rtol=1e-4)
 
 
-@pytest.mark.parametrize("aggregate", ["sum", "mean"])
+@pytest.mark.parametrize("aggregate", h.main_tier_keeps(["sum", "mean"], ("mean",)))
 def test_every_term_at_once_matches_reference(aggregate):
   rng = np.random.default_rng(5)
   names = ("label_edge", "depth", "sharpness")

@@ -38,7 +38,7 @@ key_sets = st.lists(st.tuples(st.one_of(coords, small), st.one_of(coords, small)
                     unique=True, min_size=0, max_size=BATCH)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(batches=st.lists(key_sets, min_size=1, max_size=3))
 def test_insert_then_lookup(batches):
   table = hashing.empty_table(CAPACITY)

@@ -71,7 +71,7 @@ def test_ragged_batch_equals_sequential():
     assert_same(item(states, b), sequential(seq, rule, cam))
 
 
-@pytest.mark.parametrize("free_space", [False, True])
+@pytest.mark.parametrize("free_space", h.main_tier_keeps([False, True], (True,)))
 def test_mask_makes_padding_neutral_even_with_real_data(free_space):
   rng = np.random.default_rng(1)
   seq = sequence(rng, 3)

@@ -203,7 +203,7 @@ def test_jit_and_vmap_and_no_retrace():
   assert len(leaves) == 1 and leaves[0].shape == (4, 2)       # names and policy are static
 
 
-@hypothesis.settings(max_examples=40, deadline=None)
+@hypothesis.settings(max_examples=25, deadline=None)
 @hypothesis.given(
     k_src=st.integers(1, 7), k_dst=st.integers(1, 4), seed=st.integers(0, 2**16),
     unmapped=st.sampled_from(["other", "drop"]))

@@ -109,7 +109,7 @@ def _grid_dict(num_frames=2):
 
 
 @pytest.mark.parametrize("regions", sim.REGIONS)
-@pytest.mark.parametrize("rate", [0.15, 0.5])
+@pytest.mark.parametrize("rate", h.main_tier_keeps([0.15, 0.5], (0.5,)))
 def test_error_rate_matches_on_average(scene, regions, rate):
   model = sim.error_model(error_rate=rate, cross_view_correlation=0.6, patch_size=0.3)
   if regions == "objects":    # the image-grid objects of the correlation tests (one compile)

@@ -11,6 +11,7 @@ import pytest
 import jaxfusion as jf
 import jaxfusion_models
 from jaxfusion.lab import learning
+from tests import engine_helpers as h
 
 
 def _record(path=None):
@@ -56,15 +57,16 @@ def test_shipped_parameters_never_saw_a_judged_layout(record_path):
   assert record["seconds"]["total"] < 45 * 60          # the recipe fits on 2 CPU cores
 
 
-@pytest.mark.parametrize("load", ["load_learned_rule", "load_family_rule"])
+@pytest.mark.parametrize("load", h.main_tier_keeps(["load_learned_rule", "load_family_rule"],
+                                                    ("load_family_rule",)))
 def test_shipped_rule_fuses_hard_frames_to_finite_maps(load):
   rng = np.random.default_rng(0)
-  k, h, w = 7, 6, 8
-  probs = rng.dirichlet(np.ones(k), (h, w)).astype(np.float32)
+  k, rows, cols = 7, 6, 8
+  probs = rng.dirichlet(np.ones(k), (rows, cols)).astype(np.float32)
   probs[0, 0] = np.eye(k)[2]                            # exactly 0 and 1
-  var = np.zeros((h, w, k), np.float32)                 # zero variance
+  var = np.zeros((rows, cols, k), np.float32)           # zero variance
   var[1] = 0.25
-  depth = np.full((h, w), 2.0, np.float32)
+  depth = np.full((rows, cols), 2.0, np.float32)
   depth[2, :3] = 0.0                                    # holes
   rule = getattr(jaxfusion_models, load)()
   state = jf.init_map(capacity=256, num_classes=k, voxel_size=0.1, rule=rule)
