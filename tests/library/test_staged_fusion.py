@@ -239,3 +239,55 @@ def test_a_frame_whose_room_is_sure_waits_for_nothing_the_frame_before_computes(
   mapper, _ = _growing_walk(rule, frames)
   assert len(mapper._in_flight) <= 2
   _assert_same_maps(mapper.state, _fixed_map(rule, frames))
+
+
+def _compiles_per_frame(frames, **options):
+  """A growing `Mapper` over `frames` (each frame waited for); per frame, the programs XLA
+  compiled or fetched from the persistent cache (JAX's own monitoring events)."""
+  jax.clear_caches()     # each run compiles (or fetches from the persistent cache) afresh
+  counted = [0]          # the Mapper's own set-up, then one entry per frame
+  def on_event(event, **_):
+    if event == "/jax/compilation_cache/compile_requests_use_cache":
+      counted[-1] += 1
+  def on_duration(event, *_, **__):
+    if event == "/jax/core/compile/backend_compile_duration":
+      counted[-1] += 1
+  jax.monitoring.register_event_listener(on_event)
+  jax.monitoring.register_event_duration_secs_listener(on_duration)
+  try:
+    mapper = jf.Mapper(jf.rules.robust(beta=0.3), num_classes=K, voxel_size=0.05,
+                       capacity=2**14, **options,
+                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**11))
+    for frame in frames:
+      counted.append(0)
+      jax.block_until_ready(mapper.fuse(frame, CAMERA))
+  finally:
+    jax.monitoring.unregister_event_listener(on_event)
+    jax.monitoring.unregister_event_duration_listener(on_duration)
+  return mapper, counted[1:]
+
+
+def test_a_half_compiled_ahead_leaves_the_frame_that_grows_nothing_to_compile():
+  """`compile_ahead`: a table's half for its next capacity is compiled on an earlier frame, so
+  the frame that grows compiles nothing, and the map is `fuse_frame`'s, bit for bit. Without
+  it the same frame compiles (the count can fail)."""
+  rule = jf.rules.robust(beta=0.3)
+  frames = _frames(9)
+  mapper, compiles = _compiles_per_frame(frames)
+  grew = {(t, "semantic", new) for t, _, new in mapper.growths} | {
+      (t, "geometry", new) for t, _, new in mapper.geometry_growths}
+  ahead = {(layer, new): t for t, layer, new in mapper.compiled_ahead}
+  prepared = [t for t, layer, new in grew if ahead.get((layer, new), t) < t]
+  assert prepared, (mapper.growths, mapper.geometry_growths, mapper.compiled_ahead)
+  for t in prepared:
+    assert compiles[t] == 0, (t, compiles)
+    assert compiles[ahead[next((l, n) for s, l, n in grew if s == t)]] > 0
+  fixed = jf.init_map(capacity=mapper.capacity, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05,
+                                                  capacity=mapper.state.geometry.capacity))
+  for frame in frames:
+    fixed = jf.fuse_frame(fixed, frame, CAMERA, rule)
+  _assert_same_maps(mapper.state, fixed)
+  off, off_compiles = _compiles_per_frame(frames, compile_ahead=False)
+  assert off.growths == mapper.growths and off.compiled_ahead == []
+  assert all(off_compiles[t] > 0 for t in prepared), off_compiles
