@@ -3,16 +3,15 @@
 A camera walks 2,000 frames down a 60 m corridor (2.4 m wide, 2.7 m high, rough walls; 120×160
 depth, K = 13, D+R) into a `Mapper` with a 5 cm geometry layer, both starting small (2^14 slots,
 2^10 blocks), so each layer grows several times. Each configuration of the `Mapper` (growth
-factor 2, 4 or 8; `compile_ahead` on, and off at factor 4) runs the same frames in a fresh
-process of its own (its programs compiled by itself), timed frame by frame, in turns of 50 frames with the same frames fused into a map
+factor 2, 4 or 8) runs the same frames in a fresh process of its own (its programs compiled
+by itself), timed frame by frame, in turns of 50 frames with the same frames fused into a map
 allocated at the final capacities from the start (compiled first; the capacities from a pilot
 run in a process of its own): the flat baseline, under the same load of the machine. Reported:
 
 * growth share: (time of the growing run − time of the fixed map) / time of the growing run,
   the first frame (the growing run's first compile) left out of both — everything growth
   costs;
-* the frames that grew a layer, and those that compiled a half ahead of a growth
-  (`Mapper.compiled_ahead`): each one's time, and their excess over the median frame;
+* the frames that grew a layer: each one's time, and their excess over the median frame;
 * the worst frame apart from the first (the longest stall) and the first frame.
 
 The last configuration is a user's second run of the same walk with JAX's persistent
@@ -41,13 +40,11 @@ import numpy as np
 K = 13
 TURN = 50      # frames the growing and the fixed map fuse in turn (`run_one`)
 LENGTH, HALF_WIDTH, HEIGHT = 60.0, 1.2, 2.7
-# (name, growth factor, persistent compilation cache warmed by a first run, compile_ahead)
-CONFIGS = (("factor 2, compile ahead", 2, False, True),
-           ("factor 4, compile on the frame that grows", 4, False, False),
-           ("factor 4, compile ahead (the default)", 4, False, True),
-           ("factor 8, compile ahead", 8, False, True),
-           ("factor 4, compile ahead, a repeat run with JAX's persistent compilation cache", 4,
-            True, True))
+# (name, growth factor, persistent compilation cache warmed by a first run)
+CONFIGS = (("factor 2, compile on the frame that grows", 2, False),
+           ("factor 4, compile on the frame that grows", 4, False),
+           ("factor 8, compile on the frame that grows", 8, False),
+           ("factor 4, a repeat run with JAX's persistent compilation cache", 4, True))
 
 
 def corridor_depth(T_world_cam: np.ndarray, camera, height: int, width: int) -> np.ndarray:
@@ -93,40 +90,36 @@ def _data(num_frames: int, height: int, width: int):
   return frames, camera
 
 
-def _mapper(factor: int, ahead: bool = True):
+def _mapper(factor: int):
   import jaxfusion as jf
   rule = jf.rules.robust()
   geometry = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**10)
   return jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**14, geometry=geometry,
-                   growth_factor=factor, compile_ahead=ahead), rule
+                   growth_factor=factor), rule
 
 
-def final_capacities(num_frames: int, height: int, width: int, factor: int,
-                     ahead: bool = True) -> tuple:
+def final_capacities(num_frames: int, height: int, width: int, factor: int) -> tuple:
   """`(slots, blocks)` a growing `Mapper` ends the walk with (a pilot run, untimed)."""
   frames, camera = _data(num_frames, height, width)
-  mapper, _ = _mapper(factor, ahead)
+  mapper, _ = _mapper(factor)
   for frame in frames:
     mapper.fuse(frame, camera)
   return mapper.capacity, mapper.state.geometry.capacity
 
 
-def run_one(num_frames: int, height: int, width: int, factor: int, final=None,
-            ahead: bool = True) -> dict:
+def run_one(num_frames: int, height: int, width: int, factor: int, final=None) -> dict:
   """One configuration, in this process: the growing run and the fixed-capacity baseline of
   `final = (slots, blocks)` (default: a pilot run's, `final_capacities`), in turns of `TURN`
   frames — frames t … t + TURN − 1 into the growing map, then into the fixed one — so that
   both see the same load of the machine (its speed drifts by 20 % over minutes) and each
   runs warm (frame by frame in turn, each frame finds the caches full of the other map's).
-  The fixed map's program is compiled before, the growing map's in the run, as a user's.
-  `ahead`: the `Mapper`'s `compile_ahead`; the frames that compiled ahead count with the
-  growth frames in the growth frames' excess."""
+  The fixed map's program is compiled before, the growing map's in the run, as a user's."""
   import jax
   import jaxfusion as jf
   if final is None:
-    final = final_capacities(num_frames, height, width, factor, ahead)
+    final = final_capacities(num_frames, height, width, factor)
   frames, camera = _data(num_frames, height, width)
-  mapper, rule = _mapper(factor, ahead)
+  mapper, rule = _mapper(factor)
   config = jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=int(final[1]))
   def fresh():
     return jf.init_map(capacity=int(final[0]), num_classes=K, voxel_size=0.05, rule=rule,
@@ -150,7 +143,6 @@ def run_one(num_frames: int, height: int, width: int, factor: int, final=None,
   seconds, fixed = np.array(seconds), np.array(fixed)
   median = float(np.median(seconds[1:]))
   later = [t for t in grew if t > 0]
-  ahead_frames = sorted({t for t, _, _ in mapper.compiled_ahead if t > 0} - set(later))
   return {
       "growth_factor": factor,
       "semantic_growths": [list(g) for g in mapper.growths],
@@ -162,11 +154,8 @@ def run_one(num_frames: int, height: int, width: int, factor: int, final=None,
       "fuse_s": float(seconds[1:].sum()), "fixed_s": float(fixed[1:].sum()),
       "growth_share": float((seconds[1:].sum() - fixed[1:].sum()) / seconds[1:].sum()),
       "median_ms": 1e3 * median, "fixed_median_ms": 1e3 * float(np.median(fixed[1:])),
-      "compile_ahead": bool(ahead),
-      "compiled_ahead": [list(c) for c in mapper.compiled_ahead],
       "growth_frames": [{"frame": t, "s": float(seconds[t])} for t in later],
-      "ahead_frames": [{"frame": t, "s": float(seconds[t])} for t in ahead_frames],
-      "growth_excess_s": float(sum(seconds[t] - median for t in later + ahead_frames)),
+      "growth_excess_s": float(sum(seconds[t] - median for t in later)),
       "worst_frame": int(1 + np.argmax(seconds[1:])),
       "worst_frame_s": float(seconds[1:].max()),
   }
@@ -332,10 +321,9 @@ def table(result: dict) -> str:
       f"{first['voxels']:,} voxels ({first['dropped']} dropped) and {first['blocks']:,} blocks.",
       "",
       "| Mapper | growths (semantic + geometry) | fuse s (fixed map s) | growth share | "
-      "growth (and compile-ahead) frames' excess, % of fuse | median frame ms (fixed map) | "
-      "growth frames, s each | compile-ahead frames, s each | worst frame s | "
-      "first frame s |",
-      "|---|---|---|---|---|---|---|---|---|---|",
+      "growth frames' excess, % of fuse | median frame ms (fixed map) | "
+      "growth frames, s each | worst frame s | first frame s |",
+      "|---|---|---|---|---|---|---|---|---|",
   ]
   for name, r in zip((c[0] for c in CONFIGS), result["runs"]):
     lines.append(
@@ -343,8 +331,7 @@ def table(result: dict) -> str:
         f"{r['fuse_s']:.1f} ({r['fixed_s']:.1f}) | {100 * r['growth_share']:.0f} % | "
         f"{100 * r['growth_excess_s'] / r['fuse_s']:.0f} % | "
         f"{r['median_ms']:.1f} ({r['fixed_median_ms']:.1f}) | "
-        + ", ".join(f"{g['s']:.2f}" for g in r["growth_frames"]) + " | "
-        + (", ".join(f"{g['s']:.2f}" for g in r["ahead_frames"]) or "–")
+        + ", ".join(f"{g['s']:.2f}" for g in r["growth_frames"])
         + f" | {r['worst_frame_s']:.2f} (frame {r['worst_frame']}) | {r['first_frame_s']:.1f} |")
   return "\n".join(lines)
 
@@ -357,7 +344,6 @@ def main(argv=None) -> None:
   parser.add_argument("--one", nargs=4, type=int, help=argparse.SUPPRESS)   # a child run
   parser.add_argument("--final", nargs=2, type=int, help=argparse.SUPPRESS)  # its baseline
   parser.add_argument("--pilot", action="store_true", help=argparse.SUPPRESS)
-  parser.add_argument("--no-ahead", action="store_true", help=argparse.SUPPRESS)
   parser.add_argument("--compiles", action="store_true",
                       help="only what a growth compiles, program by program "
                            "(writes growth_compiles.json)")
@@ -403,15 +389,14 @@ def main(argv=None) -> None:
       from jaxfusion.lab import compile_cache   # the `jaxfusion` commands' cache, as they use it
       compile_cache.enable()
     frames, height, width, factor = args.one
-    ahead = not args.no_ahead
     if args.pilot:
-      print(json.dumps(final_capacities(frames, height, width, factor, ahead)))
+      print(json.dumps(final_capacities(frames, height, width, factor)))
     else:
-      print(json.dumps(run_one(frames, height, width, factor, args.final, ahead)))
+      print(json.dumps(run_one(frames, height, width, factor, args.final)))
     return
   frames, height, width = (300, 60, 80) if args.quick else (2000, 120, 160)
   runs = []
-  for name, factor, cached, ahead in CONFIGS:
+  for name, factor, cached in CONFIGS:
     # A process per configuration: each compiles its own programs, as a user's run would.
     with tempfile.TemporaryDirectory() as cache:
       # JAX's own cache setting (a user's, or the test suite's) would warm the first run.
@@ -420,8 +405,7 @@ def main(argv=None) -> None:
         env.update(JAXFUSION_COMPILE_CACHE=cache, BENCH_GROWTH_CACHE="1")
       def child(*extra):
         done = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
-                               str(height), str(width), str(factor),
-                               *(() if ahead else ("--no-ahead",)), *extra],
+                               str(height), str(width), str(factor), *extra],
                               capture_output=True, text=True, check=True, env=env,
                               cwd=pathlib.Path(__file__).parent.parent)
         return json.loads(done.stdout.strip().splitlines()[-1])

@@ -102,9 +102,6 @@ def _missing(table: jax.Array, keys: jax.Array, first: jax.Array, num_groups: ja
 # of ~4 800 new blocks or voxels, none refused at the 64-probe bound at load ≤ 0.6).
 _RECENT_CALLS = 32
 _SAFE_LOAD = 0.6
-# How far to its growth threshold (`grow_at`) a table is filled, by the room check's bounds,
-# when a `Mapper` with `compile_ahead` compiles its half of a frame for the next capacity.
-_AHEAD_AT = 0.7
 
 
 class _InFlight(NamedTuple):
@@ -155,12 +152,6 @@ class Mapper:
       compilation cache (which the `jaxfusion` commands turn on) makes a repeat run's growths
       a fraction of that. The measurements: bench/RESULTS.md, "A map that grows over a long
       walk" (`bench/growth.py`).
-    compile_ahead: compile a table's half of a frame for the table's next capacity on the
-      frame that finds it `_AHEAD_AT` (0.7) of the way to `grow_at` (by the room check's
-      bounds: nothing waits), so that the frame which grows it only rehashes. The compile is
-      the one the growth would make; it moves to an earlier frame, which splits a growth's
-      stall in two (bench/RESULTS.md, "A map that grows over a long walk"). A walk that ends
-      before the growth has compiled for nothing. Staged frames only (not `gate_semantics`).
     keep_frames: how many of the latest fused frames to keep on the host (0: none), so that
       `unfuse`, `reintegrate` and `rebuild` can undo or move them (docs/equations.md §11.3).
       A frame costs its arrays' size (a 640×480 frame with K = 13 probabilities and variances:
@@ -171,8 +162,6 @@ class Mapper:
       donated to `fuse_frame`).
     growths: `[(frames_fused, old_capacity, new_capacity)]`, one entry per growth.
     geometry_growths: the same for the geometry layer's block table.
-    compiled_ahead: `[(frames_fused, layer, capacity)]`, one entry per half compiled ahead
-      (`compile_ahead`; layer "semantic" or "geometry", the capacity compiled for).
     frames_fused: frames fused so far.
     kept: the frames held, `{frame_id: (Frame, Camera)}` in the order fused (oldest first).
   """
@@ -181,8 +170,7 @@ class Mapper:
                voxel_size: float = 0.1, capacity: int = 2**16, grow_at: float = 0.5,
                max_capacity: int = 2**30,
                max_probes: int = state_lib.DEFAULT_MAX_PROBES, geometry=None,
-               free_space=False, keep_frames: int = 0, growth_factor: int = 4,
-               compile_ahead: bool = True):
+               free_space=False, keep_frames: int = 0, growth_factor: int = 4):
     if not 0.0 < grow_at < 1.0:
       raise ValueError(f"grow_at must lie in (0, 1); got {grow_at}")
     if not isinstance(max_capacity, (int, np.integer)) or max_capacity > 2**30:
@@ -194,8 +182,6 @@ class Mapper:
       raise ValueError(f"growth_factor must be 2, 4 or 8; got {growth_factor!r}")
     self.rule = rule
     self.growth_factor = int(growth_factor)
-    self.compile_ahead = bool(compile_ahead)
-    self._ahead = set()           # (layer, capacity) whose half `_compile_next` compiled
     self.keep_frames = int(keep_frames)
     self.kept = collections.OrderedDict()
     self._free_space = free_space
@@ -224,7 +210,6 @@ class Mapper:
     self._camera = (None, None)   # the last Camera fused and its device copy
     self.growths = []
     self.geometry_growths = []
-    self.compiled_ahead = []
     self.frames_fused = 0
 
   @property
@@ -389,7 +374,6 @@ class Mapper:
     check = fusion._check_inputs   # pylint: disable=protected-access
     check(self.state, frame, camera, self.rule, batch_dims=0, sample=True)
     occupied, blocks, in_flight = self._counts()
-    known = (occupied, blocks)
     if camera is not self._camera[0]:
       # Its scalars as device arrays once, not converted by each of three programs per frame.
       self._camera = (camera, jax.tree.map(jnp.float32, camera))
@@ -398,7 +382,6 @@ class Mapper:
                                     self._settings)
     if not self._make_room(prepared, occupied, blocks, depth, in_flight):
       occupied, blocks, in_flight = self._counts(keep=0)
-      known = (occupied, blocks)
       self._make_room(prepared, occupied, blocks, depth, in_flight)
     geometry, frame = self.state.geometry, prepared.frame
     state, occupied = fusion.fuse_prepared_donating(self.state.replace(geometry=None),
@@ -412,45 +395,6 @@ class Mapper:
     self._counted = True
     self._in_flight.append(_InFlight(occupied, None if geometry is None else blocks,
                                      prepared.groups.num_groups, depth.size, most_blocks))
-    if self.compile_ahead:
-      self._compile_next(prepared, camera, known, in_flight)
-
-  def _compile_next(self, prepared: fusion.PreparedFrame, camera, known: tuple,
-                    in_flight: tuple) -> None:
-    """`compile_ahead`: compiles each table's half of a frame (`fusion.fuse_prepared_donating`,
-    `tsdf.integrate_blocks_donating`) for the table's next capacity, once, when the table
-    holds `_AHEAD_AT` of `grow_at` by the counts `known = (occupied, blocks)` before the
-    frames `in_flight` and the bounds of what those add (`_bounds`; nothing waits). The
-    grown table's shapes are the rehash's (`jax.eval_shape` of `state.grown_map` and
-    `tsdf.grown_tsdf`: no array is made), so the growing frame's call finds the program in
-    JAX's cache of compiled programs."""
-    added, added_blocks = self._bounds(in_flight)
-    occupied, blocks = known
-    state = self.state
-    capacity = state.capacity
-    grown = min(capacity * self.growth_factor, self.max_capacity)
-    if (grown > capacity and ("semantic", grown) not in self._ahead
-        and occupied + added >= _AHEAD_AT * self.grow_at * capacity):
-      self._ahead.add(("semantic", grown))
-      self.compiled_ahead.append((self.frames_fused, "semantic", grown))
-      semantic = state.replace(geometry=None)
-      prior = state_lib.prior_row(semantic, self.rule)
-      shape = jax.eval_shape(
-          lambda s: state_lib.grown_map(s, prior, capacity=grown)[0], semantic)
-      fusion.fuse_prepared_donating.lower(shape, prepared, camera, self.rule).compile()
-    geometry = state.geometry
-    if geometry is None:
-      return
-    capacity = geometry.capacity
-    grown = min(capacity * self.growth_factor, 2**24)
-    if (grown > capacity and ("geometry", grown) not in self._ahead
-        and blocks + added_blocks >= _AHEAD_AT * self.grow_at * capacity):
-      self._ahead.add(("geometry", grown))
-      self.compiled_ahead.append((self.frames_fused, "geometry", grown))
-      shape = jax.eval_shape(lambda g: tsdf_lib.grown_tsdf(g, capacity=grown)[0], geometry)
-      frame = prepared.frame
-      tsdf_lib.integrate_blocks_donating.lower(shape, prepared.blocks, frame.depth,
-                                               frame.T_world_cam, camera).compile()
 
   def _bounds(self, in_flight: tuple) -> tuple:
     """`(voxels, blocks)`: what the frames `in_flight` add to the tables, without waiting.
