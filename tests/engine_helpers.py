@@ -10,7 +10,6 @@ PAPER_RULES = ("sum_probs", "sum_labels", "bayes", "robust_r", "robust_d", "robu
 DIRICHLET_RULES = ("robust_d", "robust_dr")
 
 
-
 def main_tier_keeps(values, keep):
   """`values` as pytest parameters, those not in `keep` in the slow tier: a property checked
   over many cases keeps a few in the main tier (its time budget) and every case in CI."""

@@ -45,7 +45,7 @@ def test_finite_and_dtypes_kept(name):
   assert int(state.num_occupied) > 0
 
 
-@pytest.mark.parametrize("name", h.main_tier_keeps(h.PAPER_RULES, ('sum_labels', 'robust_dr')))
+@pytest.mark.parametrize("name", h.main_tier_keeps(h.PAPER_RULES, ("sum_labels", "robust_dr")))
 def test_under_jit_equals_eager_entry_point(name):
   rng = np.random.default_rng(4)
   frame = h.random_frame(rng)
@@ -57,7 +57,7 @@ def test_under_jit_equals_eager_entry_point(name):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-@pytest.mark.parametrize("name", h.main_tier_keeps(h.PAPER_RULES, ('bayes', 'robust_dr')))
+@pytest.mark.parametrize("name", h.main_tier_keeps(h.PAPER_RULES, ("bayes", "robust_dr")))
 def test_vmap_over_maps_and_frames(name):
   rng = np.random.default_rng(5)
   frames = [h.random_frame(rng) for _ in range(2)]
@@ -129,7 +129,7 @@ def test_grad_of_hyperparameters_matches_finite_differences(name, params):
     np.testing.assert_allclose(g, fd, rtol=2e-2, atol=1e-3 * max(1.0, abs(fd)), err_msg=param)
 
 
-@pytest.mark.parametrize("name", h.main_tier_keeps(h.PAPER_RULES, ('sum_labels', 'robust_dr')))
+@pytest.mark.parametrize("name", h.main_tier_keeps(h.PAPER_RULES, ("sum_labels", "robust_dr")))
 def test_grad_wrt_probabilities_is_finite_with_one_hot_and_zero_variance(name):
   rng = np.random.default_rng(9)
   frame = h.random_frame(rng)

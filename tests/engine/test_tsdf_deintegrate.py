@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from jaxfusion import tsdf
+from tests import engine_helpers as h
 from tests.engine.test_tsdf import CAM
 from tests.engine.test_tsdf import _observed
 from tests.engine.test_tsdf import _plane_depth
 from tests.engine.test_tsdf import _pose
 from tests.engine.test_tsdf import _sphere_depth
-from tests import engine_helpers as h
 
 # One layer shape for every test, so that each weighting compiles integrate and deintegrate once.
 CAPACITY = 2**11
