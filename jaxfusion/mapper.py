@@ -27,6 +27,8 @@ Shape legend: T frames, H×W pixels, K classes, C slots.
 """
 
 import collections
+import concurrent.futures
+import functools
 from typing import NamedTuple, Optional
 
 import jax
@@ -122,6 +124,26 @@ def _read(x: jax.Array) -> int:
   """A device count as a Python int: every read the room checks make (it waits until the
   count is computed)."""
   return int(x)
+
+
+# Whether a growth on the CPU compiles the grown table's half while a worker thread rehashes
+# (`_grown_while_compiling`); False: one after the other (the comparison of bench/growth.py).
+_COMPILE_WHILE_GROWING = True
+
+
+def _grown_while_compiling(grow, compile_half):
+  """`grow()`'s result (a table rehashed into its new capacity, in NumPy) computed on a worker
+  thread while this thread runs `compile_half()` (the grown table's half of a frame compiled
+  for the shapes the rehash will have): the two costs of a growth on the CPU, overlapped. An
+  error of either is raised here, after both have finished."""
+  if not _COMPILE_WHILE_GROWING:
+    grown = grow()
+    compile_half()
+    return grown
+  with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfusion-growth") as pool:
+    future = pool.submit(grow)
+    compile_half()
+    return future.result()
 
 
 def _valid_depth_count(depth) -> int:
@@ -284,7 +306,16 @@ class Mapper:
     while blocks + new > self.grow_at * capacity and capacity < 2**24:
       capacity = min(capacity * self.growth_factor, 2**24)
     if capacity != geometry.capacity:
-      self.state = self.state.replace(geometry=tsdf_lib.grow_tsdf(geometry, capacity))
+      grow = functools.partial(tsdf_lib.grow_tsdf, geometry, capacity)
+      if prepared is not None and tsdf_lib.grows_in_numpy(geometry, capacity):
+        shape = jax.eval_shape(functools.partial(tsdf_lib.grown_tsdf, capacity=capacity),
+                               geometry)[0]
+        frame = prepared.frame
+        grown = _grown_while_compiling(grow, lambda: tsdf_lib.integrate_blocks_donating.lower(
+            shape, prepared.blocks, frame.depth, frame.T_world_cam, self._camera[1]).compile())
+      else:
+        grown = grow()
+      self.state = self.state.replace(geometry=grown)
       self.geometry_growths.append((self.frames_fused, geometry.capacity, capacity))
     return True
 
@@ -436,19 +467,29 @@ class Mapper:
       return True
     first = groups.first_pixel[:prepared.counts.shape[0]]
     self._grow_for(occupied + _missing(self.state.keys, prepared.keys, first, groups.num_groups,
-                                       max_probes=self.state.max_probes))
+                                       max_probes=self.state.max_probes), prepared)
     return True
 
-  def _grow_for(self, need: int) -> None:
+  def _grow_for(self, need: int, prepared: Optional[fusion.PreparedFrame] = None) -> None:
     """Grows the semantic table until `need` voxels stay under `grow_at` of it (or it reaches
-    `max_capacity`: then what does not fit is dropped and counted)."""
+    `max_capacity`: then what does not fit is dropped and counted). Before a `prepared` frame
+    on the CPU, its half for the new capacity compiles while the table is rehashed
+    (`_grown_while_compiling`)."""
     capacity = self.state.capacity
     while need > self.grow_at * capacity and capacity < self.max_capacity:
       capacity = min(capacity * self.growth_factor, self.max_capacity)
     if capacity == self.state.capacity:
       return
-    old = self.state.capacity
-    self.state = state_lib.grow_map(self.state, capacity, rule=self.rule)
+    old, state = self.state.capacity, self.state
+    grow = functools.partial(state_lib.grow_map, state, capacity, rule=self.rule)
+    if prepared is not None and state_lib.grows_in_numpy(state, capacity):
+      semantic = state.replace(geometry=None)
+      shape = jax.eval_shape(functools.partial(state_lib.grown_map, capacity=capacity),
+                             semantic, state_lib.prior_row(semantic, self.rule))[0]
+      self.state = _grown_while_compiling(grow, lambda: fusion.fuse_prepared_donating.lower(
+          shape, prepared, self._camera[1], self.rule).compile())
+    else:
+      self.state = grow()
     self.growths.append((self.frames_fused, old, capacity))
 
   # --- kept frames: de-integration, re-integration, rebuild (docs/equations.md §11.3) -------

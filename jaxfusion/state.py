@@ -254,6 +254,21 @@ def grown_map(state: MapState, prior, *, capacity: int):
                        claims=jnp.zeros(capacity, jnp.int32)), lost
 
 
+def _slot_arrays(state: MapState) -> dict:
+  """The arrays with a row per slot that a rehash moves (the key table among them)."""
+  free = state.free_space
+  return {"keys": state.keys, "rows": state.rows, "hits": state.hits,
+          "log_odds": None if free is None else free.log_odds}
+
+
+def grows_in_numpy(state: MapState, capacity: int) -> bool:
+  """Whether `grow_map(state, capacity)` runs entirely in NumPy, compiling nothing: a map in
+  host memory whose grown arrays stay under `hashing.HOST_MOVE_BYTES` (larger ones move with
+  one compiled `hashing.moved_rows`)."""
+  return hashing.on_host(state.keys) and not hashing.moves_on_device(capacity,
+                                                                     _slot_arrays(state))
+
+
 def grown_map_host(state: MapState, prior, *, capacity: int, on_device: Optional[bool] = None):
   """`grown_map` with the rehash in NumPy on the host: the same voxels, rows, hits and log-odds
   in a table of `capacity` slots placed by `hashing.rehash_host`, returned as device arrays.
@@ -267,8 +282,7 @@ def grown_map_host(state: MapState, prior, *, capacity: int, on_device: Optional
     `(grown, lost)` as `grown_map`: the map of C' slots and the voxels that found no slot.
   """
   free = state.free_space
-  arrays = {"keys": state.keys, "rows": state.rows, "hits": state.hits,
-            "log_odds": None if free is None else free.log_odds}
+  arrays = _slot_arrays(state)
   fills = {"keys": hashing.EMPTY, "rows": prior, "hits": 0,
            "log_odds": None if free is None else 0.0}
   src, dest, lost = hashing.rehash_host(state.keys, capacity, max_probes=state.max_probes)

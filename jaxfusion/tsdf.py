@@ -797,12 +797,25 @@ def grown_tsdf(state: TSDFState, *, capacity: int):
                        weight=weight), lost
 
 
+def _block_arrays(state: TSDFState) -> dict:
+  """The arrays with a row per block slot that a rehash moves (the key table among them)."""
+  return {"block_keys": state.block_keys, "sdf": state.sdf, "weight": state.weight}
+
+
+def grows_in_numpy(state: TSDFState, capacity: int) -> bool:
+  """Whether `grow_tsdf(state, capacity)` runs entirely in NumPy, compiling nothing: a layer
+  in host memory whose grown arrays stay under `hashing.HOST_MOVE_BYTES` (larger ones move
+  with one compiled `hashing.moved_rows`)."""
+  return hashing.on_host(state.block_keys) and not hashing.moves_on_device(
+      capacity, _block_arrays(state))
+
+
 def grown_tsdf_host(state: TSDFState, *, capacity: int, on_device: Optional[bool] = None):
   """`grown_tsdf` with the rehash in NumPy on the host (`hashing.rehash_host`; what `grow_tsdf`
   runs on the CPU, where it compiles no rehash): `(grown, lost)` as `grown_tsdf`. The blocks
   move as `hashing.grown_rows` moves them: in NumPy, or for large tables (`on_device`; None:
   `hashing.moves_on_device`) with one compiled `hashing.moved_rows`."""
-  arrays = {"block_keys": state.block_keys, "sdf": state.sdf, "weight": state.weight}
+  arrays = _block_arrays(state)
   fills = {"block_keys": hashing.EMPTY, "sdf": 0.0, "weight": 0.0}
   src, dest, lost = hashing.rehash_host(state.block_keys, capacity, max_probes=state.max_probes)
   moved, claims = hashing.grown_rows(arrays, fills, src, dest, capacity=capacity,

@@ -3,6 +3,9 @@
 recompiles only the grown table's half, and the host (NumPy) rehash a growth runs on the CPU.
 The map comes out as `fuse_frame`'s, bit for bit."""
 
+import threading
+import time
+
 import jax
 import numpy as np
 import pytest
@@ -90,6 +93,75 @@ def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves
   assert grown == {"prepare": 1, "semantic": 2, "geometry": 2, "rehash": 0, "block rehash": 0,
                    "move": 0}
   _assert_same_maps(mapper.state, _fixed_map(rule, frames))
+
+
+def test_a_growth_compiles_each_grown_half_once_while_a_worker_thread_rehashes(monkeypatch):
+  """On the CPU a growth compiles the grown table's half for the shapes the rehash will have
+  while a worker thread rehashes: both rehashes run off the calling thread, each compiles (or
+  fetches from the persistent cache) one program within the overlap, and the growing frame's
+  calls then compile nothing: a compile for shapes other than the rehash's would be followed by
+  the call's own."""
+  on_main = []
+  for module, name in ((state_lib, "grow_map"), (tsdf, "grow_tsdf")):
+    def recorded(*args, _original=getattr(module, name), _name=name, **kwargs):
+      on_main.append((_name, threading.current_thread() is threading.main_thread()))
+      return _original(*args, **kwargs)
+    monkeypatch.setattr(module, name, recorded)
+  requests, overlapped = [0], []
+  def counted(grow, compile_half, _original=mapper_lib._grown_while_compiling):
+    before = requests[-1]
+    grown = _original(grow, compile_half)
+    overlapped.append(requests[-1] - before)
+    return grown
+  monkeypatch.setattr(mapper_lib, "_grown_while_compiling", counted)
+  def on_duration(event, *_, **__):
+    # Timed around every compile request, whether XLA compiles or the persistent cache serves.
+    if event == "/jax/core/compile/backend_compile_duration":
+      requests[-1] += 1
+  rule = jf.rules.robust(beta=0.3)
+  frames = _frames(5)
+  jax.clear_caches()          # the growing frame compiles its halves afresh, as in a new process
+  jax.monitoring.register_event_duration_secs_listener(on_duration)
+  try:
+    mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, free_space=True,
+                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
+    for frame in frames:
+      requests.append(0)
+      jax.block_until_ready(mapper.fuse(frame, CAMERA))
+  finally:
+    jax.monitoring.unregister_event_duration_listener(on_duration)
+  assert mapper.growths == [(1, 2**12, 2**14)]
+  assert mapper.geometry_growths == [(1, 2**9, 2**11)]
+  assert sorted(on_main) == [("grow_map", False), ("grow_tsdf", False)]
+  # One program compiled within each growth's overlap, none by the frame's calls after it.
+  assert overlapped == [1, 1] and requests[2] == 2 and requests[3:] == [0, 0, 0], (
+      overlapped, requests)
+  _assert_same_maps(mapper.state, _fixed_map(rule, frames))
+
+
+def test_growing_while_compiling_runs_both_and_raises_either_error():
+  """`_grown_while_compiling`: the rehash's result, with an error of either side raised once
+  both have finished."""
+  done = []
+  def slow_grow():
+    time.sleep(0.05)
+    done.append(("grow", threading.current_thread() is threading.main_thread()))
+    return "grown"
+  assert mapper_lib._grown_while_compiling(slow_grow, lambda: done.append(("compile", True))) \
+      == "grown"
+  assert sorted(done) == [("compile", True), ("grow", False)]
+  def failing_grow():
+    time.sleep(0.05)
+    raise ValueError("3 blocks found no slot")
+  done.clear()
+  with pytest.raises(ValueError, match="found no slot"):
+    mapper_lib._grown_while_compiling(failing_grow, lambda: done.append("compile"))
+  assert done == ["compile"]
+  def failing_compile():
+    raise RuntimeError("compile failed")
+  with pytest.raises(RuntimeError, match="compile failed"):
+    mapper_lib._grown_while_compiling(slow_grow, failing_compile)
+  assert done[-1] == ("grow", False)      # the rehash finished before the error was raised
 
 
 @pytest.mark.slow   # the walk twice (its first, fresh, compiles what the second must not)
