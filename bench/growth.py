@@ -14,6 +14,10 @@ run in a process of its own): the flat baseline, under the same load of the mach
 * the frames that grew a layer: each one's time, and their excess over the median frame;
 * the worst frame apart from the first (the longest stall) and the first frame.
 
+Factor 4 also runs with a growth's rehash and compile one after the other, the `Mapper` before
+12-08 (by default a worker thread rehashes while the grown half compiles); `--overlap-pairs N`
+runs only those two, N times each in turns (`growth_overlap.json`).
+
 The last configuration is a user's second run of the same walk with JAX's persistent
 compilation cache on, as the `jaxfusion` commands turn it on (`jaxfusion.lab.compile_cache`):
 a first run fills a fresh cache folder, the second is timed.
@@ -40,11 +44,13 @@ import numpy as np
 K = 13
 TURN = 50      # frames the growing and the fixed map fuse in turn (`run_one`)
 LENGTH, HALF_WIDTH, HEIGHT = 60.0, 1.2, 2.7
-# (name, growth factor, persistent compilation cache warmed by a first run)
-CONFIGS = (("factor 2, compile on the frame that grows", 2, False),
-           ("factor 4, compile on the frame that grows", 4, False),
-           ("factor 8, compile on the frame that grows", 8, False),
-           ("factor 4, a repeat run with JAX's persistent compilation cache", 4, True))
+# (name, growth factor, persistent compilation cache warmed by a first run, the growth's
+# compile and rehash overlapped: `jaxfusion.mapper._grown_while_compiling`)
+CONFIGS = (("factor 2, compile on the frame that grows", 2, False, True),
+           ("factor 4, compile on the frame that grows", 4, False, True),
+           ("factor 4, rehash, then compile (not overlapped)", 4, False, False),
+           ("factor 8, compile on the frame that grows", 8, False, True),
+           ("factor 4, a repeat run with JAX's persistent compilation cache", 4, True, True))
 
 
 def corridor_depth(T_world_cam: np.ndarray, camera, height: int, width: int) -> np.ndarray:
@@ -336,6 +342,71 @@ def table(result: dict) -> str:
   return "\n".join(lines)
 
 
+def _child_env() -> dict:
+  """The environment of a child run: JAX's own cache setting (a user's, or the test suite's)
+  left out, since it would warm the first run."""
+  return {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+
+
+def _child(env: dict, frames: int, height: int, width: int, factor: int, *extra) -> dict:
+  """One `--one` run in a process of its own (it compiles its own programs, as a user's run
+  would): its JSON record."""
+  done = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
+                         str(height), str(width), str(factor), *extra],
+                        capture_output=True, text=True, check=True, env=env,
+                        cwd=pathlib.Path(__file__).parent.parent)
+  return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def overlap_pairs(pairs: int, frames: int, height: int, width: int) -> dict:
+  """Factor 4 with a growth's compile and rehash overlapped (the default) and one after the
+  other (`--not-overlapped`), `pairs` times each, in turns (not overlapped first), each run in
+  a process of its own against the same pilot's final capacities: the machine's drift over
+  minutes reaches both alike. Records every run, and per mode the medians over the runs of
+  each growth frame, the growth frames' excess and the worst frame."""
+  env = _child_env()
+  final = _child(env, frames, height, width, 4, "--pilot")
+  runs = {"not_overlapped": [], "overlapped": []}
+  for _ in range(pairs):
+    for mode, extra in (("not_overlapped", ("--not-overlapped",)), ("overlapped", ())):
+      runs[mode].append(_child(env, frames, height, width, 4, "--final", *map(str, final),
+                               *extra))
+  medians = {}
+  for mode, records in runs.items():
+    medians[mode] = {
+        "growth_frames_s": [float(np.median([r["growth_frames"][i]["s"] for r in records]))
+                            for i in range(len(records[0]["growth_frames"]))],
+        "growth_frame_ids": [g["frame"] for g in records[0]["growth_frames"]],
+        "excess_share": float(np.median([r["growth_excess_s"] / r["fuse_s"] for r in records])),
+        "growth_share": float(np.median([r["growth_share"] for r in records])),
+        "worst_frame_s": float(np.median([r["worst_frame_s"] for r in records])),
+        "fixed_s": float(np.median([r["fixed_s"] for r in records])),
+    }
+  return {"frames": frames, "height": height, "width": width, "pairs": pairs,
+          "final": list(final), "runs": runs, "medians": medians}
+
+
+def overlap_table(result: dict) -> str:
+  lines = [f"Factor 4, {result['pairs']} runs of each in turns "
+           f"({result['frames']} frames at {result['height']}×{result['width']}); medians "
+           "over the runs (every run's value in brackets).", "",
+           "| growth | growth frames, s each | growth frames' excess, % of fuse | "
+           "growth share | worst frame s | fixed map s |", "|---|---|---|---|---|---|"]
+  for mode, name in (("not_overlapped", "rehash, then compile"),
+                     ("overlapped", "compile while a worker thread rehashes")):
+    med, records = result["medians"][mode], result["runs"][mode]
+    frames = ", ".join(
+        f"{s:.2f} (" + " ".join(f"{r['growth_frames'][i]['s']:.2f}" for r in records) + ")"
+        for i, s in enumerate(med["growth_frames_s"]))
+    lines.append(
+        f"| {name} | {frames} | {100 * med['excess_share']:.1f} % ("
+        + " ".join(f"{100 * r['growth_excess_s'] / r['fuse_s']:.1f}" for r in records)
+        + f") | {100 * med['growth_share']:.0f} % | {med['worst_frame_s']:.2f} ("
+        + " ".join(f"{r['worst_frame_s']:.2f}" for r in records)
+        + f") | {med['fixed_s']:.1f} |")
+  return "\n".join(lines)
+
+
 def main(argv=None) -> None:
   parser = argparse.ArgumentParser(prog="python -m bench.growth",
                                    description=__doc__.split("\n")[0])
@@ -344,6 +415,10 @@ def main(argv=None) -> None:
   parser.add_argument("--one", nargs=4, type=int, help=argparse.SUPPRESS)   # a child run
   parser.add_argument("--final", nargs=2, type=int, help=argparse.SUPPRESS)  # its baseline
   parser.add_argument("--pilot", action="store_true", help=argparse.SUPPRESS)
+  parser.add_argument("--not-overlapped", action="store_true", help=argparse.SUPPRESS)
+  parser.add_argument("--overlap-pairs", type=int, metavar="N",
+                      help="only factor 4, N runs with a growth's compile and rehash "
+                           "overlapped and N without, in turns (writes growth_overlap.json)")
   parser.add_argument("--compiles", action="store_true",
                       help="only what a growth compiles, program by program "
                            "(writes growth_compiles.json)")
@@ -388,6 +463,9 @@ def main(argv=None) -> None:
     if os.environ.get("BENCH_GROWTH_CACHE"):
       from jaxfusion.lab import compile_cache   # the `jaxfusion` commands' cache, as they use it
       compile_cache.enable()
+    if args.not_overlapped:
+      from jaxfusion import mapper   # the comparison: a growth's rehash, then its compile
+      mapper._COMPILE_WHILE_GROWING = False   # pylint: disable=protected-access
     frames, height, width, factor = args.one
     if args.pilot:
       print(json.dumps(final_capacities(frames, height, width, factor)))
@@ -395,25 +473,29 @@ def main(argv=None) -> None:
       print(json.dumps(run_one(frames, height, width, factor, args.final)))
     return
   frames, height, width = (300, 60, 80) if args.quick else (2000, 120, 160)
+  walk_args = (frames, height, width)
+  if args.overlap_pairs:
+    result = overlap_pairs(args.overlap_pairs, *walk_args)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / ("growth_overlap_quick.json" if args.quick else "growth_overlap.json")).write_text(
+        json.dumps(result, indent=1))
+    print(overlap_table(result))
+    return
   runs = []
-  for name, factor, cached in CONFIGS:
+  for name, factor, cached, overlapped in CONFIGS:
     # A process per configuration: each compiles its own programs, as a user's run would.
     with tempfile.TemporaryDirectory() as cache:
-      # JAX's own cache setting (a user's, or the test suite's) would warm the first run.
-      env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+      env = _child_env()
       if cached:
         env.update(JAXFUSION_COMPILE_CACHE=cache, BENCH_GROWTH_CACHE="1")
-      def child(*extra):
-        done = subprocess.run([sys.executable, "-m", "bench.growth", "--one", str(frames),
-                               str(height), str(width), str(factor), *extra],
-                              capture_output=True, text=True, check=True, env=env,
-                              cwd=pathlib.Path(__file__).parent.parent)
-        return json.loads(done.stdout.strip().splitlines()[-1])
+      extra = () if overlapped else ("--not-overlapped",)
       # A pilot learns the final capacities of the fixed baseline (and, for the cached
       # configuration, is the first run that fills the cache); the timed run is the second.
-      final = child("--pilot")
-      runs.append(child("--final", *map(str, final)))
+      final = _child(env, *walk_args, factor, "--pilot", *extra)
+      runs.append(_child(env, *walk_args, factor, "--final", *map(str, final), *extra))
     runs[-1]["persistent_cache"] = cached
+    runs[-1]["overlapped"] = overlapped
     print(f"{name}: {runs[-1]['fuse_s']:.1f} s", file=sys.stderr)
   result = {"frames": frames, "height": height, "width": width, "runs": runs}
   out = pathlib.Path(args.out)

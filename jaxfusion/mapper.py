@@ -14,8 +14,9 @@ A growth is cheap because little is compiled for the new size: `Mapper.fuse` run
 its capacity-free half (`fusion.prepare_frame`: projection and grouping, compiled once) and
 each table's half (placement and update, a smaller program per capacity), and on the CPU the
 rehash and the exact room counts run in NumPy on the tables in place (`state.grown_map_host`,
-`hashing.lookup_host`), compiling nothing. bench/RESULTS.md, "A map that grows over a long
-walk", has the measurements.
+`hashing.lookup_host`), compiling nothing; the grown half compiles while a worker thread
+rehashes (`_grown_while_compiling`). bench/RESULTS.md, "A map that grows over a long walk", has
+the measurements.
 
 Example:
   >>> mapper = jaxfusion.Mapper(jaxfusion.rules.robust(), num_classes=7, capacity=2**14)

@@ -139,6 +139,19 @@ def test_a_growth_compiles_each_grown_half_once_while_a_worker_thread_rehashes(m
   _assert_same_maps(mapper.state, _fixed_map(rule, frames))
 
 
+def test_tables_whose_rows_move_with_a_compiled_program_do_not_grow_in_numpy(monkeypatch):
+  """`grows_in_numpy`: small host tables rehash in NumPy alone (so a growth may overlap them
+  with its compile); from `hashing.HOST_MOVE_BYTES` of grown arrays the rows move with a
+  compiled program, and the growth then runs its compiles one after the other."""
+  rule = jf.rules.robust(beta=0.3)
+  state = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule,
+                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
+  assert state_lib.grows_in_numpy(state, 2**14) and tsdf.grows_in_numpy(state.geometry, 2**11)
+  monkeypatch.setattr(jf.hashing, "HOST_MOVE_BYTES", 0)    # every table counts as large
+  assert not state_lib.grows_in_numpy(state, 2**14)
+  assert not tsdf.grows_in_numpy(state.geometry, 2**11)
+
+
 def test_growing_while_compiling_runs_both_and_raises_either_error():
   """`_grown_while_compiling`: the rehash's result, with an error of either side raised once
   both have finished."""
