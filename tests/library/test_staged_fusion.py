@@ -60,12 +60,14 @@ _WATCHED = (("prepare", fusion.prepare_frame), ("semantic", fusion.fuse_prepared
             ("block rehash", tsdf.grown_tsdf), ("move", jf.hashing.moved_rows))
 
 
-def _growing_walk(rule, frames):
-  """Both layers (and free space) grow at frame 1; what each watched program compiled."""
+def _growing_walk(rule, frames, before_frame=lambda: None):
+  """Both layers (and free space) grow at frame 1; what each watched program compiled.
+  `before_frame()` is called before each frame is fused."""
   before = {name: fun._cache_size() for name, fun in _WATCHED}
   mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, free_space=True,
                      geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
   for frame in frames:
+    before_frame()
     mapper.fuse(frame, CAMERA)
   assert mapper.growths == [(1, 2**12, 2**14)]
   assert mapper.geometry_growths == [(1, 2**9, 2**11)]
@@ -82,25 +84,15 @@ def _fixed_map(rule, frames):
   return fixed
 
 
-def test_a_growing_mapper_equals_fuse_frame_and_recompiles_only_the_table_halves():
+def test_a_growing_mapper_equals_fuse_frame_and_compiles_each_grown_half_once(monkeypatch):
   """Both layers (and free space) grow at frame 1 (frame 0 leaves room, so the prepared
   geometry settings must outlive the layer's donation); the map equals a map of the final
   capacities fused frame by frame with `fuse_frame`, bit for bit, and across the growths the
-  frame's half compiled once, the rehashes not at all (host NumPy)."""
-  rule = jf.rules.robust(beta=0.3)
-  frames = _frames(5)
-  mapper, grown = _growing_walk(rule, frames)
-  assert grown == {"prepare": 1, "semantic": 2, "geometry": 2, "rehash": 0, "block rehash": 0,
-                   "move": 0}
-  _assert_same_maps(mapper.state, _fixed_map(rule, frames))
-
-
-def test_a_growth_compiles_each_grown_half_once_while_a_worker_thread_rehashes(monkeypatch):
-  """On the CPU a growth compiles the grown table's half for the shapes the rehash will have
-  while a worker thread rehashes: both rehashes run off the calling thread, each compiles (or
-  fetches from the persistent cache) one program within the overlap, and the growing frame's
-  calls then compile nothing: a compile for shapes other than the rehash's would be followed by
-  the call's own."""
+  frame's half compiled once, the rehashes not at all (host NumPy). Each growth compiles the
+  grown table's half for the shapes the rehash will have while a worker thread rehashes: both
+  rehashes run off the calling thread, one program is compiled (or fetched from the persistent
+  cache) within each overlap, and the growing frame's calls then compile nothing (a compile
+  for shapes other than the rehash's would be followed by the call's own)."""
   on_main = []
   for module, name in ((state_lib, "grow_map"), (tsdf, "grow_tsdf")):
     def recorded(*args, _original=getattr(module, name), _name=name, **kwargs):
@@ -123,15 +115,11 @@ def test_a_growth_compiles_each_grown_half_once_while_a_worker_thread_rehashes(m
   jax.clear_caches()          # the growing frame compiles its halves afresh, as in a new process
   jax.monitoring.register_event_duration_secs_listener(on_duration)
   try:
-    mapper = jf.Mapper(rule, num_classes=K, voxel_size=0.05, capacity=2**12, free_space=True,
-                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
-    for frame in frames:
-      requests.append(0)
-      jax.block_until_ready(mapper.fuse(frame, CAMERA))
+    mapper, grown = _growing_walk(rule, frames, before_frame=lambda: requests.append(0))
   finally:
     jax.monitoring.unregister_event_duration_listener(on_duration)
-  assert mapper.growths == [(1, 2**12, 2**14)]
-  assert mapper.geometry_growths == [(1, 2**9, 2**11)]
+  assert grown == {"prepare": 1, "semantic": 2, "geometry": 2, "rehash": 0, "block rehash": 0,
+                   "move": 0}
   assert sorted(on_main) == [("grow_map", False), ("grow_tsdf", False)]
   # One program compiled within each growth's overlap, none by the frame's calls after it.
   assert overlapped == [1, 1] and requests[2] == 2 and requests[3:] == [0, 0, 0], (
