@@ -256,6 +256,7 @@ def test_the_staged_halves_refuse_what_they_cannot_fuse():
   assert int(mapper.state.num_occupied) > 0 and int(mapper.state.geometry.num_blocks) > 0
 
 
+@pytest.mark.slow   # ~10 s; the staged halves' other tests keep the main tier's share
 def test_a_context_rule_with_colour_fuses_through_the_staged_frame_as_fuse_frame():
   """A rule that reads per-pixel context (here from the colour image, docs/equations.md §2.5)
   gets it in the semantic half from the prepared frame's arrays: the same map."""
