@@ -130,7 +130,8 @@ def test_a_growing_mapper_equals_fuse_frame_and_compiles_each_grown_half_once(mo
 def test_tables_whose_rows_move_with_a_compiled_program_do_not_grow_in_numpy(monkeypatch):
   """`grows_in_numpy`: small host tables rehash in NumPy alone (so a growth may overlap them
   with its compile); from `hashing.HOST_MOVE_BYTES` of grown arrays the rows move with a
-  compiled program, and the growth then runs its compiles one after the other."""
+  compiled program, so the `Mapper` rehashes and compiles one after the other (the walk of
+  `test_rows_moved_as_large_tables_are_compile_no_table_half_again` takes that path)."""
   rule = jf.rules.robust(beta=0.3)
   state = jf.init_map(capacity=2**12, num_classes=K, voxel_size=0.05, rule=rule,
                       geometry=jf.tsdf.TSDFConfig(voxel_size=0.05, capacity=2**9))
